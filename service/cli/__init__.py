@@ -1,0 +1,1 @@
+"""The ``lrms`` command line (see :mod:`service.cli.main`)."""

@@ -1,0 +1,83 @@
+"""The project's foundation: device URLs, the command line, and code quality gates."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from drivers import url as durl
+from drivers.errors import DeviceURLError
+from tests.conftest import REPO
+
+
+def test_url_parses_host_port_and_options() -> None:
+    u = durl.DeviceURL.parse("tcp://10.0.0.5:2112?cola=b&timeout=0.5")
+    assert (u.scheme, u.host, u.port) == ("tcp", "10.0.0.5", 2112)
+    assert u.get_str("cola", choices=("a", "b")) == "b"
+    assert u.get_float("timeout", 1.0) == 0.5
+    u.check_all_used()
+
+
+def test_url_path_and_family_scheme() -> None:
+    u = durl.DeviceURL.parse("modbus-rtu:///dev/ttyUSB0?baud=115200&unit=1")
+    assert u.path == "/dev/ttyUSB0" and u.host is None
+    assert u.get_int("baud") == 115200 and u.get_int("unit", lo=1, hi=247) == 1
+    c = durl.DeviceURL.parse("canopen+socketcand://127.0.0.1:29536/can0?node=1")
+    assert c.scheme == "canopen+socketcand" and c.port == 29536 and c.path == "/can0"
+
+
+@pytest.mark.parametrize(
+    "bad",
+    ["10.0.0.5:2112", "tcp://host:notaport", "tcp://h:1?cola=a&cola=b"],
+)
+def test_url_rejects_malformed(bad: str) -> None:
+    with pytest.raises(DeviceURLError):
+        durl.DeviceURL.parse(bad)
+
+
+def test_url_rejects_unknown_and_bad_options() -> None:
+    u = durl.DeviceURL.parse("tcp://h:1?cloa=b")
+    u.get_str("cola", "a")
+    with pytest.raises(DeviceURLError, match="cloa"):
+        u.check_all_used()
+    with pytest.raises(DeviceURLError, match="one of"):
+        durl.DeviceURL.parse("tcp://h:1?cola=c").get_str("cola", choices=("a", "b"))
+    with pytest.raises(DeviceURLError, match="outside"):
+        durl.DeviceURL.parse("x://h?node=200").get_int("node", lo=1, hi=127)
+
+
+def test_registry_resolves_family_and_lazy_handlers() -> None:
+    seen: list[str] = []
+    durl.register("testkind", "fam+", lambda u: seen.append(u.scheme) or "opened")
+    durl.register("testkind", "lazy", "drivers.url:registered_schemes")
+    assert durl.open_device("testkind", "fam+virtual://x") == "opened"
+    assert seen == ["fam+virtual"]
+    with pytest.raises(DeviceURLError, match="no testkind driver"):
+        durl.open_device("testkind", "nope://x")
+
+
+def test_cli_help_lists_commands() -> None:
+    out = subprocess.run(
+        [sys.executable, "-m", "service.cli.main", "--help"], capture_output=True, text=True, cwd=REPO, check=True
+    ).stdout
+    assert "Laser radar measurement system" in out
+
+
+def _tool(name: str) -> str:
+    exe = shutil.which(name, path=str(REPO / ".venv" / "bin")) or shutil.which(name)
+    if exe is None:
+        pytest.fail(f"{name} is not installed (it is in the [test] extra)")
+    return exe
+
+
+def test_ruff_clean() -> None:
+    proc = subprocess.run([_tool("ruff"), "check", "."], capture_output=True, text=True, cwd=REPO)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_mypy_clean() -> None:
+    proc = subprocess.run([_tool("mypy")], capture_output=True, text=True, cwd=REPO)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
