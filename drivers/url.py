@@ -169,3 +169,12 @@ def open_device(kind: str, url: str | DeviceURL, **kwargs: Any) -> Any:
     parsed = url if isinstance(url, DeviceURL) else DeviceURL.parse(url)
     handler = _resolve(kind, parsed.scheme)
     return handler(parsed, **kwargs)
+
+
+# Built-in handlers, imported on first use. The ``sim`` schemes live in the ``sim`` package
+# (like pyserial's protocol handler packages), so ``drivers`` never imports it unless asked.
+register("scanner", "tcp", "drivers.lms100.client:open_url")
+register("scanner", "sim", "sim.scanner.server:open_url")
+register("motor", "canopen+", "drivers.servo.cia402_can:open_url")
+register("motor", "modbus-rtu", "drivers.servo.modbus_backend:open_url")
+register("motor", "sim", "sim.drive.can_node:open_url")
