@@ -1,0 +1,211 @@
+"""The rig configuration: a TOML file validated by pydantic.
+
+A rig is either real (``[scanner] url`` and ``[motor] url`` name devices, see
+:mod:`drivers.url`) or simulated (a ``[sim]`` table: the service starts one simulated rig,
+scanner and drive on one clock, and fills in both URLs itself). Angles are in degrees in the
+file, lengths in metres (keys say so: ``*_deg``, ``*_m``). Every table rejects unknown keys, so a
+typo is an error rather than a silent default. :func:`load_config` raises :class:`ConfigError`
+with the file name and the offending key.
+
+The bearer token of the REST API's write endpoints comes from ``[auth] token`` or, when that is
+empty, the ``LRMS_API_TOKEN`` environment variable; with neither, write endpoints are refused.
+"""
+
+from __future__ import annotations
+
+import os
+import tomllib
+from importlib import resources
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from lrms.errors import LrmsError
+from lrms.kinematics import RigCalibration
+from service.errors import ConfigError
+
+TOKEN_ENV = "LRMS_API_TOKEN"
+DEFAULT_RIG = "default_rig.toml"
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class DeviceConfig(_Strict):
+    """A device by URL (``tcp://10.0.0.5:2112?cola=b``, ``canopen+socketcand://...``)."""
+
+    url: str | None = None
+
+    @field_validator("url")
+    @classmethod
+    def _url_shape(cls, v: str | None) -> str | None:
+        if v is not None and "://" not in v:
+            raise ValueError(f"not a device URL (expected scheme://...): {v!r}")
+        return v
+
+
+class NoiseConfig(_Strict):
+    """The sensor's noise model (seed 003: sigma_l^2 = 136.11 mm^2)."""
+
+    sigma_l_m: float = Field(0.01167, ge=0.0, le=1.0)
+    sigma_alpha_deg: float = Field(1.74e-3, ge=0.0, le=10.0)
+    sigma_beta_deg: float = Field(3.6e-5, ge=0.0, le=10.0)
+
+
+class StorageConfig(_Strict):
+    """Where results, raw logs and clouds go. Relative paths are relative to the config file."""
+
+    dir: Path = Path("lrms-data")
+    database: str = "lrms.sqlite"
+
+    @property
+    def db_path(self) -> Path:
+        return self.dir / self.database
+
+    @property
+    def raw_dir(self) -> Path:
+        return self.dir / "raw"
+
+    @property
+    def cloud_dir(self) -> Path:
+        return self.dir / "clouds"
+
+
+class AuthConfig(_Strict):
+    token: str = ""
+
+
+class SweepConfig(_Strict):
+    """Default sweep: over [start_deg, stop_deg] of the scan-plane angle beta."""
+
+    start_deg: float = Field(-20.0, ge=-180.0, le=180.0)
+    stop_deg: float = Field(60.0, ge=-180.0, le=180.0)
+    speed_deg_s: float = Field(10.0, gt=0.0, le=360.0)
+    mode: Literal["constant", "step"] = "constant"
+    step_deg: float = Field(1.0, gt=0.0, le=90.0)
+    scans_per_step: int = Field(1, ge=1, le=1000)
+    acceleration_deg_s2: float = Field(90.0, gt=0.0, le=100000.0)
+
+    @model_validator(mode="after")
+    def _range(self) -> SweepConfig:
+        if self.stop_deg == self.start_deg:
+            raise ValueError("sweep start_deg and stop_deg must differ")
+        return self
+
+
+class FitConfig(_Strict):
+    """Fit defaults: the region of interest (world frame, metres) and the coverage factor k."""
+
+    roi_min_m: tuple[float, float, float] | None = None
+    roi_max_m: tuple[float, float, float] | None = None
+    k: float = Field(3.0, gt=0.0, le=10.0)
+    min_range_m: float = Field(0.05, ge=0.0)
+    max_range_m: float = Field(20.0, gt=0.0)
+
+
+class SimConfig(_Strict):
+    """The embedded simulated rig: scene, real-time factor, CAN transport, fault injection."""
+
+    scene: str = "seed003"
+    seed: int | None = None
+    cola: Literal["a", "b"] = "b"
+    scan_frequency_hz: Literal[25, 50] = 50
+    can: Literal["socketcand", "virtual"] = "socketcand"
+    node: int = Field(1, ge=1, le=127)
+
+
+class RigConfig(_Strict):
+    """The whole rig configuration (the TOML file)."""
+
+    name: str = "rig"
+    scanner: DeviceConfig = DeviceConfig()
+    motor: DeviceConfig = DeviceConfig()
+    sim: SimConfig | None = None
+    kinematics: dict[str, Any] = Field(default_factory=dict)
+    noise: NoiseConfig = NoiseConfig()
+    storage: StorageConfig = StorageConfig()
+    auth: AuthConfig = AuthConfig()
+    sweep: SweepConfig = SweepConfig()
+    fit: FitConfig = FitConfig()
+
+    @model_validator(mode="after")
+    def _devices(self) -> RigConfig:
+        if self.sim is None:
+            missing = [k for k, d in (("scanner", self.scanner), ("motor", self.motor)) if d.url is None]
+            if missing:
+                raise ValueError(f"[{'] and ['.join(missing)}] url missing (or add a [sim] table for a simulated rig)")
+        else:
+            given = [k for k, d in (("scanner", self.scanner), ("motor", self.motor)) if d.url is not None]
+            if given:
+                raise ValueError(f"[{given[0]}] url and [sim] are exclusive: the simulated rig supplies its own URLs")
+        try:
+            RigCalibration.from_dict(self.kinematics)
+        except (LrmsError, ValueError, TypeError) as exc:
+            raise ValueError(f"[kinematics]: {exc}") from None
+        return self
+
+    @property
+    def calibration(self) -> RigCalibration:
+        return RigCalibration.from_dict(self.kinematics)
+
+    @property
+    def is_sim(self) -> bool:
+        return self.sim is not None
+
+    def api_token(self) -> str | None:
+        """The bearer token for write endpoints, or None when none is configured."""
+        return self.auth.token or os.environ.get(TOKEN_ENV) or None
+
+
+def _format_errors(exc: ValidationError) -> str:
+    parts = []
+    for err in exc.errors():
+        loc = ".".join(str(x) for x in err["loc"]) or "(top level)"
+        msg = err["msg"].removeprefix("Value error, ")
+        parts.append(f"{loc}: {msg}")
+    return "; ".join(parts)
+
+
+def parse_config(data: dict[str, Any], base_dir: Path | None = None, source: str = "config") -> RigConfig:
+    """Validate a config mapping; relative storage paths are resolved against ``base_dir``."""
+    try:
+        cfg = RigConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(f"{source}: {_format_errors(exc)}") from None
+    if base_dir is not None and not cfg.storage.dir.is_absolute():
+        storage = cfg.storage.model_copy(update={"dir": (base_dir / cfg.storage.dir).resolve()})
+        cfg = cfg.model_copy(update={"storage": storage})
+    return cfg
+
+
+def parse_toml(text: str, base_dir: Path | None = None, source: str = "config") -> RigConfig:
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{source}: not valid TOML: {exc}") from None
+    return parse_config(data, base_dir, source)
+
+
+def load_config(path: str | Path | None = None, storage_dir: str | Path | None = None) -> RigConfig:
+    """Load a rig TOML file; ``None`` loads the default simulated rig.
+
+    The default rig keeps its data under ``$LRMS_DATA`` or ``./lrms-data``; ``storage_dir``
+    overrides the storage folder of any config.
+    """
+    if path is None:
+        text = resources.files("service").joinpath(DEFAULT_RIG).read_text(encoding="utf-8")
+        base = Path(os.environ.get("LRMS_DATA", ".")).resolve()
+        cfg = parse_toml(text, base, source=f"(built-in {DEFAULT_RIG})")
+    else:
+        p = Path(path)
+        try:
+            text = p.read_text(encoding="utf-8")
+        except OSError as exc:
+            raise ConfigError(f"cannot read config {p}: {exc.strerror or exc}") from None
+        cfg = parse_toml(text, p.resolve().parent, source=str(p))
+    if storage_dir is not None:
+        storage = cfg.storage.model_copy(update={"dir": Path(storage_dir).resolve()})
+        cfg = cfg.model_copy(update={"storage": storage})
+    return cfg

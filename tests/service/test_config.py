@@ -1,0 +1,82 @@
+"""The rig TOML: the built-in simulated rig, real rigs, and clear errors for bad files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.config import TOKEN_ENV, load_config, parse_toml
+from service.errors import ConfigError
+
+REAL = """
+name = "bay-3"
+[scanner]
+url = "tcp://10.0.0.5:2112?cola=b"
+[motor]
+url = "canopen+socketcan://can0?node=1"
+[kinematics]
+p_m = 0.12
+motor_zero_deg = 1.5
+[storage]
+dir = "data"
+[auth]
+token = "s3cret"
+"""
+
+
+def test_default_rig_is_the_simulated_seed003_rig(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("LRMS_DATA", str(tmp_path))
+    cfg = load_config()
+    assert cfg.is_sim and cfg.sim is not None and cfg.sim.scene == "seed003"
+    assert cfg.scanner.url is None and cfg.motor.url is None
+    assert cfg.calibration.p == pytest.approx(0.1)
+    assert cfg.noise.sigma_l_m**2 == pytest.approx(136.11e-6, rel=1e-3)
+    assert cfg.storage.db_path == tmp_path / "lrms-data" / "lrms.sqlite"
+    assert cfg.sweep.mode == "constant" and cfg.sweep.stop_deg > cfg.sweep.start_deg
+
+
+def test_real_rig_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    f = tmp_path / "rig.toml"
+    f.write_text(REAL)
+    monkeypatch.delenv(TOKEN_ENV, raising=False)
+    cfg = load_config(f)
+    assert cfg.scanner.url == "tcp://10.0.0.5:2112?cola=b" and not cfg.is_sim
+    assert cfg.calibration.motor_zero == pytest.approx(np.deg2rad(1.5))
+    assert cfg.storage.dir == tmp_path / "data"  # relative to the file
+    assert cfg.api_token() == "s3cret"
+
+
+def test_token_from_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    cfg = parse_toml(REAL.replace('token = "s3cret"', ""))
+    monkeypatch.delenv(TOKEN_ENV, raising=False)
+    assert cfg.api_token() is None
+    monkeypatch.setenv(TOKEN_ENV, "from-env")
+    assert cfg.api_token() == "from-env"
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("[scanner]\nurl='tcp://h:1'\n", "motor"),
+        ("[sim]\n[scanner]\nurl='tcp://h:1'\n", "exclusive"),
+        ("[sim]\n[scanner]\nurll='x'\n", "scanner.url"),
+        ("[sim]\n[sweep]\nspeed_deg_s=-1\n", "sweep.speed_deg_s"),
+        ("[sim]\n[sweep]\nstart_deg=5\nstop_deg=5\n", "differ"),
+        ("[sim]\n[sweep]\nmode='zigzag'\n", "sweep.mode"),
+        ("[sim]\n[kinematics]\np_m=-1\n", "inner parameter"),
+        ("[sim]\n[kinematics]\nbogus=1\n", "bogus"),
+        ("[sim]\nscene=3\n", "scene"),
+        ("[sim\n", "not valid TOML"),
+        ("[scanner]\nurl='10.0.0.5:2112'\n[motor]\nurl='canopen+socketcan://can0'\n", "not a device URL"),
+    ],
+)
+def test_bad_configs_are_clear_errors(text: str, message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        parse_toml(text)
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="cannot read config"):
+        load_config(tmp_path / "nope.toml")
