@@ -49,9 +49,9 @@ class DeviceConfig(_Strict):
 class NoiseConfig(_Strict):
     """The sensor's noise model (seed 003: sigma_l^2 = 136.11 mm^2)."""
 
-    sigma_l_m: float = Field(0.01167, ge=0.0, le=1.0)
-    sigma_alpha_deg: float = Field(1.74e-3, ge=0.0, le=10.0)
-    sigma_beta_deg: float = Field(3.6e-5, ge=0.0, le=10.0)
+    sigma_l_m: float = Field(default=0.01167, ge=0.0, le=1.0)
+    sigma_alpha_deg: float = Field(default=1.74e-3, ge=0.0, le=10.0)
+    sigma_beta_deg: float = Field(default=3.6e-5, ge=0.0, le=10.0)
 
 
 class StorageConfig(_Strict):
@@ -80,13 +80,13 @@ class AuthConfig(_Strict):
 class SweepConfig(_Strict):
     """Default sweep: over [start_deg, stop_deg] of the scan-plane angle beta."""
 
-    start_deg: float = Field(-20.0, ge=-180.0, le=180.0)
-    stop_deg: float = Field(60.0, ge=-180.0, le=180.0)
-    speed_deg_s: float = Field(10.0, gt=0.0, le=360.0)
+    start_deg: float = Field(default=-20.0, ge=-180.0, le=180.0)
+    stop_deg: float = Field(default=60.0, ge=-180.0, le=180.0)
+    speed_deg_s: float = Field(default=10.0, gt=0.0, le=360.0)
     mode: Literal["constant", "step"] = "constant"
-    step_deg: float = Field(1.0, gt=0.0, le=90.0)
-    scans_per_step: int = Field(1, ge=1, le=1000)
-    acceleration_deg_s2: float = Field(90.0, gt=0.0, le=100000.0)
+    step_deg: float = Field(default=1.0, gt=0.0, le=90.0)
+    scans_per_step: int = Field(default=1, ge=1, le=1000)
+    acceleration_deg_s2: float = Field(default=90.0, gt=0.0, le=100000.0)
 
     @model_validator(mode="after")
     def _range(self) -> SweepConfig:
@@ -100,9 +100,9 @@ class FitConfig(_Strict):
 
     roi_min_m: tuple[float, float, float] | None = None
     roi_max_m: tuple[float, float, float] | None = None
-    k: float = Field(3.0, gt=0.0, le=10.0)
-    min_range_m: float = Field(0.05, ge=0.0)
-    max_range_m: float = Field(20.0, gt=0.0)
+    k: float = Field(default=3.0, gt=0.0, le=10.0)
+    min_range_m: float = Field(default=0.05, ge=0.0)
+    max_range_m: float = Field(default=20.0, gt=0.0)
 
 
 class SimConfig(_Strict):
@@ -113,22 +113,22 @@ class SimConfig(_Strict):
     cola: Literal["a", "b"] = "b"
     scan_frequency_hz: Literal[25, 50] = 50
     can: Literal["socketcand", "virtual"] = "socketcand"
-    node: int = Field(1, ge=1, le=127)
+    node: int = Field(default=1, ge=1, le=127)
 
 
 class RigConfig(_Strict):
     """The whole rig configuration (the TOML file)."""
 
     name: str = "rig"
-    scanner: DeviceConfig = DeviceConfig()
-    motor: DeviceConfig = DeviceConfig()
+    scanner: DeviceConfig = Field(default_factory=DeviceConfig)
+    motor: DeviceConfig = Field(default_factory=DeviceConfig)
     sim: SimConfig | None = None
     kinematics: dict[str, Any] = Field(default_factory=dict)
-    noise: NoiseConfig = NoiseConfig()
-    storage: StorageConfig = StorageConfig()
-    auth: AuthConfig = AuthConfig()
-    sweep: SweepConfig = SweepConfig()
-    fit: FitConfig = FitConfig()
+    noise: NoiseConfig = Field(default_factory=NoiseConfig)
+    storage: StorageConfig = Field(default_factory=StorageConfig)
+    auth: AuthConfig = Field(default_factory=AuthConfig)
+    sweep: SweepConfig = Field(default_factory=SweepConfig)
+    fit: FitConfig = Field(default_factory=FitConfig)
 
     @model_validator(mode="after")
     def _devices(self) -> RigConfig:

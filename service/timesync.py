@@ -165,8 +165,8 @@ class ClockSync:
 def _envelope_slope(x: FloatArray, y: FloatArray) -> float:
     """Slope of the lower-convex-hull edge of the points above their mean x."""
     order = np.argsort(x, kind="stable")
-    xs = x[order].tolist()
-    ys = y[order].tolist()
+    xs: list[float] = x[order].tolist()
+    ys: list[float] = y[order].tolist()
     hull: list[int] = []
     for i in range(len(xs)):  # monotone chain, lower hull; O(n) on sorted x
         while len(hull) >= 2:
