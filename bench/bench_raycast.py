@@ -1,0 +1,55 @@
+"""Ray-cast throughput of the simulated scene against the LMS1xx's own beam rate.
+
+Run: ``.venv/bin/python bench/bench_raycast.py``. Prints rays/s for one 1081-beam scan
+(0.25 deg, 25 Hz: 27,025 reported beams/s) against the ``seed003`` scene, with and without the
+sensor's noise, and for a sweep of 100 scans cast at once, as multiples of the sensor's rate.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from lrms.kinematics import RigCalibration
+from sim.scene import SensorModel, TorusSection, cast_beams, get_scene, lms1xx_device_angles
+
+SENSOR_BEAMS_PER_S = 1081 * 25.0
+
+
+def _rate(fn: Callable[[], object], rays_per_call: int, min_time: float = 1.0) -> float:
+    fn()  # warm-up
+    calls = 0
+    start = time.perf_counter()
+    while True:
+        fn()
+        calls += 1
+        elapsed = time.perf_counter() - start
+        if elapsed >= min_time:
+            return calls * rays_per_call / elapsed
+
+
+def main() -> None:
+    cal = RigCalibration()
+    dev = lms1xx_device_angles(0.25)
+    scene = get_scene("seed003")
+    noisy, exact = SensorModel(), SensorModel.noiseless()
+    rng = np.random.default_rng(0)
+    sweep = np.deg2rad(np.linspace(-15, 60, 100))[:, None]
+    elbow_scene = get_scene("seed003")
+    elbow_scene.add(TorusSection((0.9, 2.6, 0.0), (0, 0, 1), 0.3, 0.08, np.pi / 2), name="elbow")
+    cases: list[tuple[str, Callable[[], object], int]] = [
+        ("seed003, 1 scan x 1081 beams, noiseless", lambda: cast_beams(scene, cal, exact, dev, 0.3), dev.size),
+        ("seed003, 1 scan x 1081 beams, sensor noise", lambda: cast_beams(scene, cal, noisy, dev, 0.3, rng), dev.size),
+        ("seed003, 100 scans at once (sweep)", lambda: cast_beams(scene, cal, noisy, dev, sweep, rng), 100 * dev.size),
+        ("seed003 + torus elbow, 1 scan", lambda: cast_beams(elbow_scene, cal, noisy, dev, 0.0, rng), dev.size),
+    ]
+    print(f"sensor rate (baseline): {SENSOR_BEAMS_PER_S:,.0f} beams/s (1081 beams x 25 Hz)")
+    for name, fn, n in cases:
+        rate = _rate(fn, n)
+        print(f"{name:45s} {rate:12,.0f} rays/s  = {rate / SENSOR_BEAMS_PER_S:7.1f} x real time")
+
+
+if __name__ == "__main__":
+    main()

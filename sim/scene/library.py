@@ -1,0 +1,144 @@
+"""Named scenes: ``get_scene(name)`` builds a fresh :class:`Scene`, ``list_scenes()`` names them.
+
+Coordinates are the world frame; with the default :class:`lrms.kinematics.RigCalibration` that is
+the rig frame (y on the motor shaft, z up, the LMS1xx looking along +y at device angle 90 deg).
+
+Other modules add scenes with :func:`register_scene`; ``sim.scene.joints`` (pipe elbows, when
+present) is imported on first use of the registry so that its scenes are listed too.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+
+import numpy as np
+
+from sim.scene.scene import Scene
+from sim.scene.shapes import Box, Cylinder, Plane, SceneError
+
+#: Seed 003's part: a 137.5 mm diameter cylinder (CMM value), axis (0, 0, 1) through the centre
+#: of its bottom circle C0 = (0.28, 2.53, -0.1) m, standing on the table top at z = -0.1 m.
+SEED003_DIAMETER = 0.1375
+SEED003_AXIS_POINT = (0.28, 2.53, -0.1)
+SEED003_AXIS_DIRECTION = (0.0, 0.0, 1.0)
+SEED003_HEIGHT = 0.8
+#: Floor level of the seed003 room (table height 0.75 m).
+SEED003_FLOOR_Z = -0.85
+
+SceneFactory = Callable[[], Scene]
+_SCENES: dict[str, tuple[SceneFactory, str]] = {}
+_PLUGINS = ("sim.scene.joints",)
+_plugins_loaded = False
+
+
+def register_scene(name: str, factory: SceneFactory, description: str = "") -> None:
+    """Make ``get_scene(name)`` call ``factory()``; a name can be registered once."""
+    if not name or any(c.isspace() for c in name):
+        raise SceneError(f"bad scene name {name!r}")
+    if name in _SCENES and _SCENES[name][0] is not factory:
+        raise SceneError(f"scene {name!r} is already registered")
+    _SCENES[name] = (factory, description)
+
+
+def _load_plugins() -> None:
+    global _plugins_loaded
+    if _plugins_loaded:
+        return
+    _plugins_loaded = True
+    for module_name in _PLUGINS:
+        try:
+            importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:
+            if exc.name != module_name:
+                raise
+
+
+def list_scenes() -> list[str]:
+    """Names of all registered scenes, sorted."""
+    _load_plugins()
+    return sorted(_SCENES)
+
+
+def describe_scene(name: str) -> str:
+    _load_plugins()
+    if name not in _SCENES:
+        raise SceneError(f"unknown scene {name!r} (known: {', '.join(sorted(_SCENES))})")
+    return _SCENES[name][1]
+
+
+def get_scene(name: str) -> Scene:
+    """A new instance of the named scene."""
+    _load_plugins()
+    entry = _SCENES.get(name)
+    if entry is None:
+        raise SceneError(f"unknown scene {name!r} (known: {', '.join(sorted(_SCENES))})")
+    scene = entry[0]()
+    scene.name = name
+    return scene
+
+
+def _rot_z(angle_rad: float) -> np.ndarray:
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def add_seed003_part(scene: Scene) -> None:
+    """Seed 003's cylinder on its table (table top z = -0.1 m, 1.2 m x 0.8 m, four legs)."""
+    x0, y0, z0 = SEED003_AXIS_POINT
+    scene.add(
+        Cylinder(SEED003_AXIS_POINT, SEED003_AXIS_DIRECTION, SEED003_DIAMETER / 2, SEED003_HEIGHT),
+        remission=0.35,
+        name="cylinder",
+    )
+    top_thickness = 0.04
+    scene.add(Box((x0, y0, z0 - top_thickness / 2), (1.2, 0.8, top_thickness)), remission=0.6, name="table")
+    leg_h = (z0 - top_thickness) - SEED003_FLOOR_Z
+    for i, (dx, dy) in enumerate(((-0.55, -0.35), (0.55, -0.35), (-0.55, 0.35), (0.55, 0.35))):
+        scene.add(
+            Box((x0 + dx, y0 + dy, SEED003_FLOOR_Z + leg_h / 2), (0.05, 0.05, leg_h)),
+            remission=0.4,
+            name=f"table_leg{i}",
+        )
+
+
+def seed003() -> Scene:
+    """Seed 003's experiment with a room around it: floor, back wall, and clutter on and near the table."""
+    scene = Scene("seed003")
+    add_seed003_part(scene)
+    z_table = SEED003_AXIS_POINT[2]
+    scene.add(Plane((0.0, 0.0, SEED003_FLOOR_Z), (0.0, 0.0, 1.0)), remission=0.2, name="floor")
+    scene.add(
+        Plane((0.0, 6.0, 1.0), (0.0, -1.0, 0.0), size=(12.0, 4.0), u_axis=(1.0, 0.0, 0.0)),
+        remission=0.7,
+        name="back_wall",
+    )
+    scene.add(Box((0.68, 2.42, z_table + 0.075), (0.15, 0.15, 0.15), _rot_z(np.deg2rad(20.0))), 0.5, "clutter_box")
+    scene.add(Cylinder((-0.02, 2.75, z_table), (0.0, 0.0, 1.0), 0.035, 0.25), remission=0.8, name="clutter_bottle")
+    scene.add(Cylinder((-0.9, 3.3, SEED003_FLOOR_Z), (0.0, 0.0, 1.0), 0.05, 2.2), remission=0.5, name="clutter_post")
+    return scene
+
+
+def seed003_bare() -> Scene:
+    """Only seed 003's cylinder and its table: no room, no clutter."""
+    scene = Scene("seed003-bare")
+    add_seed003_part(scene)
+    return scene
+
+
+def empty() -> Scene:
+    """Nothing at all: every beam misses (the device reports 0)."""
+    return Scene("empty")
+
+
+def wall() -> Scene:
+    """An infinite wall 3 m ahead (the plane y = 3 m, facing the rig), remission 0.7."""
+    scene = Scene("wall")
+    scene.add(Plane((0.0, 3.0, 0.0), (0.0, -1.0, 0.0)), remission=0.7, name="wall")
+    return scene
+
+
+register_scene("seed003", seed003, "seed 003: 137.5 mm cylinder on a table 2.53 m along +y, floor, wall, clutter")
+register_scene("seed003-bare", seed003_bare, "seed 003's cylinder and table only")
+register_scene("empty", empty, "nothing: every beam misses")
+register_scene("wall", wall, "an infinite wall at y = 3 m")

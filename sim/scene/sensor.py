@@ -1,0 +1,209 @@
+"""The LMS100 sensor model and beam simulation on a rig (seed 003's noise figures).
+
+Seed 003 (Sect. 2.2) gives the per-sample variances the rig's error model uses:
+``sigma_l^2 = 136.11 mm^2`` (sigma_l = 11.67 mm), ``sigma_alpha = 1.74e-3 deg`` and
+``sigma_beta = 3.6e-5 deg``. The seed's text prints the two angle figures as "1.74 x 10^-30" and
+"3.6 x 10^-50": we read the trailing "0" as a degree sign (our reading; the figures are then tiny
+compared with the range noise, as the seed's Fig. 4 and text say: "range measurement
+uncertainties contribute the most"). Both are parameters.
+
+Simulation of one beam: the beam leaves along the *true* angles ``alpha + d_alpha``,
+``beta + d_beta`` (Gaussian, the angle noise), is ray-cast against the scene, and the device
+reports the nominal angles with the true range plus Gaussian range noise. Beams whose true
+range lies outside ``[range_min, range_max]``, that miss everything, or whose echo
+(``remission * |cos incidence|``) is below ``min_echo`` report 0, as the LMS1xx does.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from lrms.kinematics import RigCalibration, beam_rays
+from sim.scene.scene import Scene
+from sim.scene.shapes import FloatArray, SceneError
+
+#: Seed 003: variance of one range sample, 136.11 mm^2.
+SIGMA_L_SEED003 = float(np.sqrt(136.11e-6))
+#: Seed 003: scan-angle standard deviation (1.74e-3 deg, see module notes), in rad.
+SIGMA_ALPHA_SEED003 = float(np.deg2rad(1.74e-3))
+#: Seed 003: motor-angle standard deviation (3.6e-5 deg, see module notes), in rad.
+SIGMA_BETA_SEED003 = float(np.deg2rad(3.6e-5))
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """Noise, range limits and echo model of one range sample.
+
+    ``quantum``: if > 0, reported ranges are rounded to it (the device sends whole mm; the
+    simulated device always rounds to its own unit, this is for offline clouds).
+    ``rssi_gain``: RSSI digits for a white (remission 1) target hit head-on.
+    """
+
+    sigma_l: float = SIGMA_L_SEED003
+    sigma_alpha: float = SIGMA_ALPHA_SEED003
+    sigma_beta: float = SIGMA_BETA_SEED003
+    range_min: float = 0.5
+    range_max: float = 20.0
+    min_echo: float = 0.01
+    quantum: float = 0.0
+    rssi_gain: float = 200.0
+
+    def __post_init__(self) -> None:
+        for name in ("sigma_l", "sigma_alpha", "sigma_beta", "min_echo", "quantum", "rssi_gain"):
+            v = getattr(self, name)
+            if not np.isfinite(v) or v < 0:
+                raise SceneError(f"sensor {name} must be finite and >= 0, got {v!r}")
+        if not (0 <= self.range_min < self.range_max) or not np.isfinite(self.range_max):
+            raise SceneError(f"sensor range limits must satisfy 0 <= min < max, got {self.range_min}, {self.range_max}")
+
+    @classmethod
+    def noiseless(cls, **kw: float) -> SensorModel:
+        """A model without any noise (same limits)."""
+        return cls(sigma_l=0.0, sigma_alpha=0.0, sigma_beta=0.0, **kw)
+
+    def angle_noise(self, shape: tuple[int, ...], rng: np.random.Generator | None) -> tuple[FloatArray, FloatArray]:
+        """Draws of (d_alpha, d_beta) for ``shape`` samples (zeros without ``rng``)."""
+        if rng is None:
+            return np.zeros(shape), np.zeros(shape)
+        return rng.normal(0.0, self.sigma_alpha, shape), rng.normal(0.0, self.sigma_beta, shape)
+
+    def measure(
+        self,
+        true_range: ArrayLike,
+        echo: ArrayLike,
+        rng: np.random.Generator | None,
+    ) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """Reported ranges (m; 0 = no echo) and the validity mask from true ranges and echo strength."""
+        t = np.asarray(true_range, dtype=np.float64)
+        e = np.asarray(echo, dtype=np.float64)
+        valid = np.isfinite(t) & (t >= self.range_min) & (t <= self.range_max) & (e >= self.min_echo) & (e > 0)
+        out = np.where(valid, t, 0.0)
+        if rng is not None and self.sigma_l > 0:
+            out = out + np.where(valid, rng.normal(0.0, self.sigma_l, t.shape), 0.0)
+        if self.quantum > 0:
+            out = np.round(out / self.quantum) * self.quantum
+        out = np.where(valid, np.maximum(out, 0.0), 0.0)
+        return out, valid
+
+    def rssi(self, echo: ArrayLike, valid: ArrayLike) -> FloatArray:
+        """RSSI digits (0 for no echo): ``rssi_gain * remission * |cos incidence|``."""
+        e = np.asarray(echo, dtype=np.float64)
+        return np.where(np.asarray(valid, dtype=bool), self.rssi_gain * e, 0.0)
+
+
+@dataclass(frozen=True)
+class BeamSamples:
+    """Simulated beams, all arrays of one shape ``S`` (e.g. (scans, beams)).
+
+    ``ranges``: what the device reports (m, 0 = no echo); ``valid``: echo present;
+    ``true_range``: noise-free range along the beam actually fired (inf: miss); ``index``: object
+    hit (-1: none); ``cos_incidence``, ``remission``, ``rssi``; ``device_angle`` and
+    ``motor_angle``: the nominal (reported) angles in rad.
+    """
+
+    ranges: FloatArray
+    valid: NDArray[np.bool_]
+    true_range: FloatArray
+    index: NDArray[np.intp]
+    cos_incidence: FloatArray
+    remission: FloatArray
+    rssi: FloatArray
+    device_angle: FloatArray
+    motor_angle: FloatArray
+
+    def points(self, calibration: RigCalibration) -> FloatArray:
+        """World points ``(K, 3)`` of the valid samples, mapped with the nominal angles (Eq. 1)."""
+        v = self.valid
+        return calibration.map_samples(self.ranges[v], self.device_angle[v], self.motor_angle[v])
+
+
+def cast_beams(
+    scene: Scene,
+    calibration: RigCalibration,
+    sensor: SensorModel,
+    device_angles_rad: ArrayLike,
+    motor_angles_rad: ArrayLike,
+    rng: np.random.Generator | None = None,
+) -> BeamSamples:
+    """Simulate samples for device beam angles and motor angles (broadcast against each other).
+
+    Typical shapes: ``device_angles (M,)`` with ``motor_angles (S, 1)`` (one plane per scan) or
+    ``(S, M)`` (the plane turns during the scan). Without ``rng`` nothing is random.
+    """
+    dev, mot = np.broadcast_arrays(
+        np.asarray(device_angles_rad, dtype=np.float64), np.asarray(motor_angles_rad, dtype=np.float64)
+    )
+    if not (np.all(np.isfinite(dev)) and np.all(np.isfinite(mot))):
+        raise SceneError("device and motor angles must be finite")
+    shape = dev.shape
+    d_alpha, d_beta = sensor.angle_noise(shape, rng)
+    alpha = calibration.alpha(dev) + d_alpha
+    beta = calibration.beta(mot) + d_beta
+    o_rig, d_rig = beam_rays(alpha.ravel(), beta.ravel(), calibration.p)
+    rot = calibration.world_from_rig[:3, :3]
+    origins = calibration.to_world(o_rig)
+    dirs = d_rig @ rot.T
+    hits = scene.raycast(origins, dirs)
+    echo = hits.remission * hits.cos_incidence
+    ranges, valid = sensor.measure(hits.range, echo, rng)
+    return BeamSamples(
+        ranges=ranges.reshape(shape),
+        valid=valid.reshape(shape),
+        true_range=hits.range.reshape(shape),
+        index=hits.index.reshape(shape),
+        cos_incidence=hits.cos_incidence.reshape(shape),
+        remission=hits.remission.reshape(shape),
+        rssi=sensor.rssi(echo, valid).reshape(shape),
+        device_angle=np.array(dev, dtype=np.float64),
+        motor_angle=np.array(mot, dtype=np.float64),
+    )
+
+
+def simulate_sweep(
+    scene: Scene,
+    calibration: RigCalibration,
+    sensor: SensorModel,
+    device_angles_rad: ArrayLike,
+    motor_angles_rad: ArrayLike,
+    rng: np.random.Generator | None = None,
+) -> FloatArray:
+    """Reported ranges (m, 0 = no echo) for a sweep; shapes as :func:`cast_beams`.
+
+    ``motor_angles_rad`` of shape ``(S,)`` is taken as one plane per scan (result ``(S, M)``).
+    """
+    mot = np.asarray(motor_angles_rad, dtype=np.float64)
+    dev = np.asarray(device_angles_rad, dtype=np.float64)
+    if mot.ndim == 1 and dev.ndim == 1:
+        mot = mot[:, None]
+    return cast_beams(scene, calibration, sensor, dev, mot, rng).ranges
+
+
+def lms1xx_device_angles(resolution_deg: float = 0.25) -> FloatArray:
+    """The LMS1xx beam angles in rad (-45 deg .. 225 deg): 1081 at 0.25 deg, 541 at 0.5 deg."""
+    if resolution_deg not in (0.25, 0.5):
+        raise SceneError(f"an LMS1xx scans at 0.25 or 0.5 deg, not {resolution_deg}")
+    count = round(270 / resolution_deg) + 1
+    angles: FloatArray = np.deg2rad(-45.0 + resolution_deg * np.arange(count))
+    return angles
+
+
+def sweep_cloud(
+    scene: Scene,
+    calibration: RigCalibration,
+    sensor: SensorModel,
+    motor_angles_rad: ArrayLike,
+    rng: np.random.Generator | None = None,
+    resolution_deg: float = 0.25,
+) -> tuple[FloatArray, BeamSamples]:
+    """A whole LRMS sweep as a world-frame cloud: one LMS1xx scan per motor angle.
+
+    Returns the valid points ``(K, 3)`` mapped with Eq. 1 from the reported ranges and nominal
+    angles, and the underlying :class:`BeamSamples` of shape ``(S, beams)``.
+    """
+    dev = lms1xx_device_angles(resolution_deg)
+    mot = np.asarray(motor_angles_rad, dtype=np.float64).reshape(-1, 1)
+    samples = cast_beams(scene, calibration, sensor, dev, mot, rng)
+    return samples.points(calibration), samples
