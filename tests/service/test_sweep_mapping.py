@@ -1,0 +1,124 @@
+"""Per-beam motor angles against an analytic trajectory, scan gap counting, mapping to 3D."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lrms.kinematics import RigCalibration, forward
+from service.sweep import GapCounter, ScanRecord, SweepError, beam_interval_us, interpolate_angle, map_sweep
+from service.timesync import ClockSync
+
+HOST0_NS = 1_763_700_000_000_000_000
+DEV0_US = 4_294_000_000  # close to the 32-bit wrap: it wraps during the sweep
+DRIFT = 30e-6
+
+
+def beta_true(t: np.ndarray) -> np.ndarray:
+    """A smooth shaft trajectory (rad) over host seconds since HOST0: ramp plus a wobble."""
+    return -0.35 + 0.17 * t + 0.01 * np.sin(2 * np.pi * 0.5 * t)
+
+
+def _sweep(rng: np.random.Generator, n_scans: int = 250):
+    f, step = 50.0, np.deg2rad(0.5)
+    n_beams = 541
+    dt_us = beam_interval_us(step, f)
+    clock = ClockSync()
+    scans = []
+    truth_t = []
+    for k in range(n_scans):
+        dev_t0 = k * 20_000  # device us since DEV0
+        t_true0 = (1 + DRIFT) * dev_t0 * 1e-6  # host seconds of beam 0
+        ttx = dev_t0 + 16_000
+        recv = (1 + DRIFT) * ttx * 1e-6 + 0.0003 + rng.exponential(0.001)
+        raw_t0 = (DEV0_US + dev_t0) % (1 << 32)
+        raw_tx = (DEV0_US + ttx) % (1 << 32)
+        u0 = clock.unwrap(raw_t0)
+        utx = clock.unwrap(raw_tx)
+        host_ns = HOST0_NS + round(recv * 1e9)
+        clock.update(utx, host_ns * 1e-9)
+        scans.append(
+            ScanRecord(
+                host_ns=host_ns,
+                scan_counter=k,
+                telegram_counter=k,
+                t0_us=u0,
+                ttx_us=utx,
+                start_angle_rad=np.deg2rad(-45.0),
+                step_rad=step,
+                scan_frequency_hz=f,
+                ranges_m=rng.uniform(0.6, 4.0, n_beams),
+            )
+        )
+        truth_t.append(t_true0 + np.arange(n_beams) * dt_us * 1e-6 + 0.0003)
+    # motor samples at 200 Hz with host timestamps (sampling delay already in the timestamps)
+    mt = np.arange(-0.1, n_scans * 0.02 + 0.1, 0.005)
+    return scans, clock, HOST0_NS + np.round(mt * 1e9).astype(np.int64), beta_true(mt), np.concatenate(truth_t)
+
+
+def test_beam_interval_is_the_mirror_turning_the_step() -> None:
+    assert beam_interval_us(np.deg2rad(0.5), 50.0) == pytest.approx(1e6 / 36000)
+    assert beam_interval_us(np.deg2rad(0.25), 25.0) == pytest.approx(1e6 / 36000)
+    with pytest.raises(SweepError):
+        beam_interval_us(0.0, 50.0)
+
+
+def test_each_beam_gets_the_motor_angle_at_its_instant() -> None:
+    rng = np.random.default_rng(5)
+    scans, clock, mt_ns, mpos, beam_t_true = _sweep(rng)
+    calib = RigCalibration()
+    m = map_sweep(scans, mt_ns, mpos, clock, calib, min_range_m=0.05)
+    assert m.beams_total == 250 * 541 and m.points.shape == (250 * 541, 3)
+    t_rel = beam_t_true - (mt_ns[0] - HOST0_NS) * 1e-9
+    # the beam times come out on the clock model (sub-0.2 ms), so beta matches the analytic curve
+    assert np.max(np.abs(m.beam_time_s - t_rel)) < 2e-4
+    err = m.beta - beta_true(beam_t_true)
+    assert np.max(np.abs(err)) < 0.17 * 2e-4 + 1e-5  # rate x time error + interpolation error
+    # within one scan the plane turns (~0.2 rad/s x 15 ms): first and last beam differ by that
+    turned = m.beta[540] - m.beta[0]
+    assert turned > 2.5e-3
+    assert turned == pytest.approx(beta_true(beam_t_true[540:541])[0] - beta_true(beam_t_true[:1])[0], rel=1e-2)
+    # the 3D points follow Eq. 1 with those angles
+    alpha = calib.alpha(np.deg2rad(-45.0) + np.deg2rad(0.5) * np.tile(np.arange(541), 250))
+    expect = forward(np.concatenate([s.ranges_m for s in scans]), alpha, beta_true(beam_t_true))
+    assert np.max(np.linalg.norm(m.points - expect, axis=1)) < 4.0 * 5e-5
+
+
+def test_beams_outside_motor_samples_and_window_are_counted_not_invented() -> None:
+    rng = np.random.default_rng(6)
+    scans, clock, mt_ns, mpos, _ = _sweep(rng, n_scans=100)
+    cut = len(mt_ns) // 2
+    m = map_sweep(scans, mt_ns[:cut], mpos[:cut], clock, RigCalibration())
+    assert m.beams_without_motor > 0 and not np.any(np.isnan(m.beta))
+    assert m.points.shape[0] + m.beams_without_motor == m.beams_total
+    w = map_sweep(scans, mt_ns, mpos, clock, RigCalibration(), beta_window=(-0.3, -0.25))
+    assert w.beams_outside_sweep > 0 and np.all((w.beta >= -0.3) & (w.beta <= -0.25))
+
+
+def test_no_echo_and_range_limits() -> None:
+    rng = np.random.default_rng(7)
+    scans, clock, mt_ns, mpos, _ = _sweep(rng, n_scans=10)
+    scans[3].ranges_m[:100] = 0.0
+    scans[4].ranges_m[:10] = 30.0
+    m = map_sweep(scans, mt_ns, mpos, clock, RigCalibration(), max_range_m=20.0)
+    assert m.beams_no_echo == 100 and m.beams_out_of_range == 10
+    assert m.points.shape[0] == 10 * 541 - 110
+
+
+def test_interpolation_errors() -> None:
+    with pytest.raises(SweepError, match="two motor samples"):
+        interpolate_angle([0.0], [0.0], [1.0])
+    with pytest.raises(SweepError, match="increase"):
+        interpolate_angle([0.0], [0.0, 0.0], [1.0, 2.0])
+    out = interpolate_angle([-1.0, 0.5, 2.0], [0.0, 1.0], [0.0, 2.0])
+    assert np.isnan(out[0]) and out[1] == 1.0 and np.isnan(out[2])
+
+
+def test_gap_counter_counts_every_missing_scan_across_the_wrap() -> None:
+    g = GapCounter()
+    for c in [65530, 65531, 65533, 65535, 0, 4, 4, 5]:
+        g.add(c)
+    assert g.received == 8 and g.duplicates == 1
+    assert g.missing == 1 + 1 + 3 and g.gaps == [(65531, 1), (65533, 1), (0, 3)]
+    g.reset_reference()
+    assert g.add(100) == 0
