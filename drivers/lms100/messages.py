@@ -332,7 +332,10 @@ class ReadScanDataConfig(Message):
     pass
 
 
-@_msg("sRA", "LMDscandatacfg", *_SCANDATACFG)
+_SCANDATACFG_HEX = tuple((n, Field(f.kind, f.size, f.signed, "X")) for n, f in _SCANDATACFG)
+
+
+@_msg("sRA", "LMDscandatacfg", *_SCANDATACFG_HEX)
 class ScanDataConfig(_ScanDataCfgFields, Message):
     output_channel: tuple[int, int]
     remission: bool
