@@ -1,7 +1,7 @@
 """Modbus register map: where the CiA 402 objects of a servo drive live in its holding registers.
 
 The default map (``modbus_map.toml`` beside this module, documented in ``docs/modbus.md``) lays the CiA
-402 objects out as ``address = 0x6000 + ((index & 0xFF) << 4) + 2 * subindex``; a TOML file of the same
+402 objects out as ``address = (index & 0xF000) + ((index & 0xFF) << 4) + 2 * subindex``; a TOML file of the same
 shape replaces it for a drive with another layout. The map is shared by the master
 (:mod:`drivers.servo.modbus_backend`) and the simulated slave (:mod:`sim.drive.modbus_server`), so both
 agree on addresses, data types and the word order of 32-bit values.

@@ -24,10 +24,10 @@ def test_default_map_follows_the_documented_address_rule() -> None:
     m = default_map()
     assert m.word_order == "high_first"
     for e in m.entries:
-        assert e.address == 0x6000 + ((e.index & 0xFF) << 4) + 2 * e.subindex, e.name
+        assert e.address == (e.index & 0xF000) + ((e.index & 0xFF) << 4) + 2 * e.subindex, e.name
     # the objects a position servo needs are all there
     for index in (0x6040, 0x6041, 0x6060, 0x6061, 0x607A, 0x6081, 0x6083, 0x6084, 0x6064, 0x606C, 0x603F,
-                  0x6098, 0x60FF):  # fmt: skip
+                  0x6098, 0x60FF, 0x1001):  # fmt: skip
         assert (index, 0) in m
     assert m.entry(0x6040).address == 0x6400
     assert m.entry(0x6041).address == 0x6410
