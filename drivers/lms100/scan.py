@@ -217,7 +217,7 @@ class Scan:
     @property
     def ranges_m(self) -> npt.NDArray[np.float64]:
         """DIST1 in metres (``values * scale + offset`` mm / 1000), float64. 0 means no echo."""
-        return self.dist1.scaled() * 1e-3
+        return self.dist1.scaled() / 1000.0
 
     @property
     def angles_rad(self) -> npt.NDArray[np.float64]:
