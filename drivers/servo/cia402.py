@@ -76,28 +76,32 @@ DEVICE_TYPE_SERVO = 0x00020192  # profile 402 (0x192), servo drive (type bits 0x
 
 
 class DataType(enum.Enum):
-    """CANopen basic data types: (struct format, size in bytes); strings have no fixed size."""
+    """CANopen basic data types: (CiA 301 type code, struct format, size in bytes)."""
 
-    BOOLEAN = ("<B", 1)
-    INT8 = ("<b", 1)
-    UINT8 = ("<B", 1)
-    INT16 = ("<h", 2)
-    UINT16 = ("<H", 2)
-    INT32 = ("<i", 4)
-    UINT32 = ("<I", 4)
-    VISIBLE_STRING = ("", 0)
+    BOOLEAN = (0x01, "<B", 1)
+    INT8 = (0x02, "<b", 1)
+    INT16 = (0x03, "<h", 2)
+    INT32 = (0x04, "<i", 4)
+    UINT8 = (0x05, "<B", 1)
+    UINT16 = (0x06, "<H", 2)
+    UINT32 = (0x07, "<I", 4)
+    VISIBLE_STRING = (0x09, "", 0)
 
     @property
-    def fmt(self) -> str:
+    def code(self) -> int:
         return self.value[0]
 
     @property
-    def size(self) -> int:
+    def fmt(self) -> str:
         return self.value[1]
 
     @property
+    def size(self) -> int:
+        return self.value[2]
+
+    @property
     def bits(self) -> int:
-        return 8 * self.value[1]
+        return 8 * self.value[2]
 
     @property
     def is_integer(self) -> bool:

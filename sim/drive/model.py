@@ -511,16 +511,22 @@ class SimDrive:
                     return
         else:
             self._trajectory(dt)
+        error_before = self._demand - self._actual
+        demand_before = self._demand
         self._demand += self._demand_vel * dt
         if self._landing:
             self._landing = False
             if self._target is not None:
                 self._demand = self._target
             self._demand_vel = 0.0
-        # --- the axis follows (first-order servo loop) unless stalled
+        # --- the axis follows (first-order servo loop) unless stalled. Exact over the step for a
+        # demand moving at constant velocity, so the result does not depend on the step size.
         before = self._actual
         if not self.stalled:
-            self._actual += (self._demand - self._actual) * (1.0 - math.exp(-dt / self.servo_tau_s))
+            decay = math.exp(-dt / self.servo_tau_s)
+            v = (self._demand - demand_before) / dt
+            error = error_before * decay + v * self.servo_tau_s * (1.0 - decay)
+            self._actual = self._demand - error
         self._actual_vel = (self._actual - before) / dt
         # --- following error monitor
         window = int(self._store[(cia402.FOLLOWING_ERROR_WINDOW, 0)])

@@ -1,0 +1,458 @@
+"""CANopen CiA 402 backend on python-can (with the ``canopen`` library's SDO client and NMT).
+
+URL: ``canopen+<python-can interface>://<channel>?node=N&...``, for example
+``canopen+virtual://bus1?node=1``, ``canopen+socketcand://127.0.0.1:29536/can0?node=1``,
+``canopen+socketcan://can0?node=1``, ``canopen+pcan://PCAN_USBBUS1?node=1&bitrate=500000``.
+For ``socketcand`` the host and port are the daemon's and the path is the CAN channel; for every
+other interface the host part (or the path) is the channel. Options:
+
+=================  =========  ====================================================================
+``node``           1          CANopen node id of the drive (1..127)
+``sync_hz``        100        SYNC produced by this driver (10..1000 Hz); one sample per SYNC
+``heartbeat_ms``   50         heartbeat period written to the drive's 0x1017 (0 = no watchdog)
+``heartbeat_lost`` 3.5        the drive is lost after this many heartbeat periods of silence
+``sdo_timeout``    0.5        seconds to wait for each SDO response
+``bitrate``        (none)     passed to python-can for interfaces that need it
+``counts_per_rev`` (config)   encoder counts per motor revolution, overrides the DriveConfig
+``gear_ratio``     (config)   motor revolutions per output revolution, overrides the DriveConfig
+=================  =========  ====================================================================
+
+On open the driver checks 0x1000 (profile 402), puts the node in Pre-operational, sets the
+heartbeat, maps TPDO1 = statusword + position actual and TPDO2 = velocity actual + following
+error (both transmission type 1, every SYNC), writes the configured windows and limits, starts
+the node (Operational), and runs its own SYNC producer thread. Every TPDO1 is stamped with the
+host time of the SYNC it answers (paired first-in first-out, so a TPDO that arrives after the
+next SYNC still gets its own SYNC's time); a sample is emitted when the matching TPDO2 arrives.
+The controlword is written by SDO (each command confirmed by the drive). ``close()`` stops the
+SYNC and the watchdog and releases the bus; it leaves the drive's state alone.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import socket
+import struct
+import threading
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, replace
+from typing import Any
+from urllib.parse import urlsplit
+
+import can
+import canopen
+from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
+
+from drivers.errors import DeviceConnectionError, DeviceTimeoutError, DriverError
+from drivers.servo import cia402
+from drivers.servo.interface import (
+    Cia402Motor,
+    Clock,
+    DriveConfig,
+    FaultInfo,
+    HeartbeatLost,
+    MotorSample,
+    SdoAbort,
+    ServoError,
+)
+from drivers.url import DeviceURL
+
+log = logging.getLogger(__name__)
+
+
+class SdoTimeout(ServoError, DeviceTimeoutError):
+    """The drive did not answer an SDO request in time."""
+
+
+class NotCia402Device(ServoError):
+    """Object 0x1000 says the node does not implement device profile 402."""
+
+
+@dataclass(frozen=True)
+class CanUrlOptions:
+    node: int = 1
+    sync_hz: float = 100.0
+    heartbeat_ms: int = 50
+    heartbeat_lost: float = 3.5
+    sdo_timeout: float = 0.5
+    counts_per_rev: int | None = None
+    gear_ratio: float | None = None
+
+    def drive_config(self, base: DriveConfig | Mapping[str, Any] | None) -> DriveConfig:
+        config = base if isinstance(base, DriveConfig) else DriveConfig.from_dict(base or {})
+        if self.counts_per_rev is not None:
+            config = replace(config, counts_per_rev=self.counts_per_rev)
+        if self.gear_ratio is not None:
+            config = replace(config, gear_ratio=self.gear_ratio)
+        return config
+
+
+def read_url_options(url: DeviceURL) -> CanUrlOptions:
+    """The driver options of a ``canopen+...://`` (or ``sim://``) URL (marks them used)."""
+    return CanUrlOptions(
+        node=url.get_int("node", 1, lo=1, hi=127),
+        sync_hz=url.get_float("sync_hz", 100.0, lo=10.0, hi=1000.0),
+        heartbeat_ms=url.get_int("heartbeat_ms", 50, lo=0, hi=65535),
+        heartbeat_lost=url.get_float("heartbeat_lost", 3.5, lo=1.5, hi=100.0),
+        sdo_timeout=url.get_float("sdo_timeout", 0.5, lo=0.01, hi=30.0),
+        counts_per_rev=url.get_int("counts_per_rev", lo=1) if url.has("counts_per_rev") else None,
+        gear_ratio=url.get_float("gear_ratio") if url.has("gear_ratio") else None,
+    )
+
+
+def bus_kwargs(url: DeviceURL) -> dict[str, Any]:
+    """python-can ``Bus`` keyword arguments for a ``canopen+<interface>://`` URL (marks options used)."""
+    scheme = url.scheme
+    if not scheme.startswith("canopen+") or scheme == "canopen+":
+        raise DriverError(f"not a canopen+<interface> URL: {url.raw!r}")
+    interface = scheme.split("+", 1)[1]
+    if interface == "udp_multicast":
+        raise DriverError("python-can's udp_multicast sends frames onto the network; it is not allowed here")
+    kwargs: dict[str, Any] = {"interface": interface}
+    netloc = urlsplit(url.raw).netloc  # keeps the channel's case (hostname is lower-cased)
+    path = url.path.lstrip("/")
+    if interface == "socketcand":
+        if not url.host or url.port is None:
+            raise DriverError(
+                f"socketcand URL needs host:port, e.g. canopen+socketcand://127.0.0.1:29536/can0: {url.raw!r}"
+            )
+        kwargs.update(host=url.host, port=url.port, channel=path or "can0")
+    else:
+        channel = netloc or path
+        if not channel:
+            raise DriverError(f"no CAN channel in {url.raw!r}")
+        kwargs["channel"] = channel
+    if url.has("bitrate"):
+        kwargs["bitrate"] = url.get_int("bitrate", lo=1000, hi=1_000_000)
+    return kwargs
+
+
+def open_url(url: DeviceURL | str, **kw: Any) -> Cia402CanMotor:
+    """Open ``canopen+<interface>://...`` (see the module docstring); keywords: ``config``, ``clock``."""
+    parsed = url if isinstance(url, DeviceURL) else DeviceURL.parse(url)
+    kwargs = bus_kwargs(parsed)
+    options = read_url_options(parsed)
+    parsed.check_all_used()
+    return Cia402CanMotor.open_bus(kwargs, options, **kw)
+
+
+def _probe_tcp(host: str, port: int, timeout: float = 2.0) -> None:
+    try:
+        with socket.create_connection((host, port), timeout=timeout):
+            pass
+    except OSError as exc:
+        raise DeviceConnectionError(f"no socketcand server at {host}:{port}: {exc}") from None
+
+
+class Cia402CanMotor(Cia402Motor):
+    """A CiA 402 drive on a CANopen bus (see the module docstring)."""
+
+    def __init__(
+        self,
+        bus: can.BusABC,
+        options: CanUrlOptions | None = None,
+        *,
+        config: DriveConfig | Mapping[str, Any] | None = None,
+        clock: Clock = time.monotonic,
+        on_close: Callable[[], None] | None = None,
+        buffer_size: int = 65536,
+    ) -> None:
+        self.options = options or CanUrlOptions()
+        super().__init__(self.options.drive_config(config), clock, buffer_size)
+        self.node_id = self.options.node
+        self.on_close = on_close
+        self.sim_node: Any = None  # set by sim:// (the simulated node behind this driver)
+        self._closed = False
+        self._stop = threading.Event()
+        self._sdo_lock = threading.Lock()
+        self._sw_cond = threading.Condition()
+        self._last_sw: tuple[float, int] | None = None  # (SYNC time, statusword)
+        self._pending_tpdo1: tuple[float, int, int] | None = None  # (SYNC time, statusword, position)
+        self._sync_times: collections.deque[float] = collections.deque(maxlen=64)
+        self._sync_lock = threading.Lock()
+        self._last_heartbeat: float | None = None
+        self._heartbeat_state: int | None = None
+        self.emcy_history: collections.deque[tuple[float, cia402.Emcy]] = collections.deque(maxlen=32)
+        self._emcy_callbacks: list[Callable[[float, cia402.Emcy], None]] = []
+        self.sync_count = 0
+        self.tpdo_count = 0
+
+        self.network = canopen.Network(bus)
+        self.node = canopen.RemoteNode(self.node_id, canopen.ObjectDictionary())
+        self.node.sdo.RESPONSE_TIMEOUT = self.options.sdo_timeout
+        self.node.sdo.MAX_RETRIES = 1
+        self.network.add_node(self.node)
+        n = self.node_id
+        self.network.subscribe(0x180 + n, self._on_tpdo1)
+        self.network.subscribe(0x280 + n, self._on_tpdo2)
+        self.network.subscribe(0x700 + n, self._on_heartbeat)
+        self.network.subscribe(0x080 + n, self._on_emcy)
+        self.network.connect()
+        self._sync_thread: threading.Thread | None = None
+        try:
+            self._start_node()
+        except BaseException:
+            self.close()
+            raise
+
+    @classmethod
+    def open_bus(
+        cls,
+        kwargs: Mapping[str, Any],
+        options: CanUrlOptions,
+        **kw: Any,
+    ) -> Cia402CanMotor:
+        """Create the python-can bus from ``kwargs`` and open the drive on it (the motor owns the bus)."""
+        kwargs = dict(kwargs)
+        if kwargs.get("interface") == "socketcand":
+            _probe_tcp(kwargs["host"], kwargs["port"])
+        try:
+            bus = can.Bus(**kwargs)
+        except (can.CanError, OSError, ValueError, ImportError) as exc:
+            raise DeviceConnectionError(f"cannot open CAN bus {kwargs}: {exc}") from exc
+        return cls(bus, options, **kw)
+
+    # ------------------------------------------------------------------------------------------
+    # start-up
+    # ------------------------------------------------------------------------------------------
+    def _start_node(self) -> None:
+        device_type = self._read_object(cia402.DEVICE_TYPE)
+        if device_type & 0xFFFF != 402:
+            raise NotCia402Device(f"node {self.node_id}: device type 0x{device_type:08X} is not a CiA 402 drive")
+        self._nmt(0x80)  # Pre-operational: PDO mapping may change
+        self._write_object(cia402.PRODUCER_HEARTBEAT_TIME, 0, self.options.heartbeat_ms)
+        self._map_tpdo(0, [(cia402.STATUSWORD, 0, 16), (cia402.POSITION_ACTUAL, 0, 32)])
+        self._map_tpdo(1, [(cia402.VELOCITY_ACTUAL, 0, 32), (cia402.FOLLOWING_ERROR_ACTUAL, 0, 32)])
+        self._write_object(cia402.SYNC_COUNTER_OVERFLOW, 0, 0)
+        self._configure_drive()
+        self._controlword = self._read_object(cia402.CONTROLWORD)
+        self._nmt(0x01)  # Operational
+        if self.options.heartbeat_ms:
+            self._last_heartbeat = self.clock()  # the watchdog starts now
+        self._sync_thread = threading.Thread(target=self._sync_loop, name=f"canopen-sync-{self.node_id}", daemon=True)
+        self._sync_thread.start()
+        self._statusword_after(self.clock(), 1.0)  # first TPDO: the node is up and answering SYNC
+
+    def _nmt(self, command: int) -> None:
+        self.network.send_message(0x000, bytes([command, self.node_id]))
+
+    def _map_tpdo(self, k: int, entries: list[tuple[int, int, int]]) -> None:
+        """Re-map TPDO k+1 by the CiA 301 procedure (invalidate, clear, entries, count, type, validate)."""
+        comm, mapping = cia402.TPDO_COMM + k, cia402.TPDO_MAP + k
+        cob = (0x180 + 0x100 * k + self.node_id) | (1 << 30)  # no RTR
+        self._write_object(comm, 1, cob | (1 << 31))
+        self._write_object(mapping, 0, 0)
+        for sub, (index, subindex, bits) in enumerate(entries, start=1):
+            self._write_object(mapping, sub, cia402.pdo_map_entry(index, subindex, bits))
+        self._write_object(mapping, 0, len(entries))
+        self._write_object(comm, 2, 1)  # synchronous, every SYNC
+        self._write_object(comm, 1, cob)
+
+    # ------------------------------------------------------------------------------------------
+    # SDO
+    # ------------------------------------------------------------------------------------------
+    def sdo_upload(self, index: int, subindex: int = 0) -> bytes:
+        """Read any object's raw bytes (expedited or segmented upload)."""
+        with self._sdo_lock:
+            try:
+                data: bytes = self.node.sdo.upload(index, subindex)
+                return data
+            except SdoAbortedError as exc:
+                raise SdoAbort(index, subindex, exc.code) from None
+            except SdoCommunicationError as exc:
+                raise SdoTimeout(
+                    f"node {self.node_id}: no SDO answer for 0x{index:04X}:{subindex:02X} ({exc})"
+                ) from None
+            except can.CanError as exc:
+                raise DeviceConnectionError(f"CAN send failed: {exc}") from exc
+
+    def sdo_download(self, index: int, subindex: int, data: bytes, *, force_segment: bool = False) -> None:
+        """Write any object's raw bytes (expedited when <= 4 bytes unless ``force_segment``)."""
+        with self._sdo_lock:
+            try:
+                self.node.sdo.download(index, subindex, data, force_segment=force_segment)
+            except SdoAbortedError as exc:
+                raise SdoAbort(index, subindex, exc.code) from None
+            except SdoCommunicationError as exc:
+                raise SdoTimeout(
+                    f"node {self.node_id}: no SDO answer for 0x{index:04X}:{subindex:02X} ({exc})"
+                ) from None
+            except can.CanError as exc:
+                raise DeviceConnectionError(f"CAN send failed: {exc}") from exc
+
+    def _read_object(self, index: int, subindex: int = 0) -> int:
+        spec = cia402.object_spec(index, subindex)
+        data = self.sdo_upload(index, subindex)
+        if len(data) < spec.dtype.size:
+            raise ServoError(f"0x{index:04X}:{subindex:02X}: drive sent {len(data)} bytes for a {spec.dtype.name}")
+        return spec.dtype.decode(data[: spec.dtype.size])
+
+    def _write_object(self, index: int, subindex: int, value: int) -> None:
+        spec = cia402.object_spec(index, subindex)
+        lo, hi = spec.dtype.range
+        if not lo <= value <= hi:
+            raise ValueError(f"0x{index:04X}:{subindex:02X} {spec.name}: {value} outside [{lo}, {hi}]")
+        self.sdo_download(index, subindex, spec.dtype.encode(value))
+
+    # ------------------------------------------------------------------------------------------
+    # SYNC, TPDOs, heartbeat, EMCY
+    # ------------------------------------------------------------------------------------------
+    def _sync_loop(self) -> None:
+        period = 1.0 / self.options.sync_hz
+        next_t = time.monotonic()
+        while not self._stop.is_set():
+            delay = next_t - time.monotonic()
+            if delay > 0 and self._stop.wait(delay):
+                break
+            t_sync = self.clock()
+            with self._sync_lock:
+                self._sync_times.append(t_sync)
+            try:
+                self.network.send_message(0x080, b"")
+                self.sync_count += 1
+            except (can.CanError, OSError, RuntimeError) as exc:
+                if self._stop.is_set():
+                    break
+                log.warning("node %d: SYNC send failed: %s", self.node_id, exc)
+            next_t += period
+            now = time.monotonic()
+            if now - next_t > period:  # fell behind (machine busy): skip, don't burst
+                next_t = now + period
+            self._watchdog()
+
+    def _sync_time_for(self, t_rx: float) -> float:
+        """Host time of the SYNC a TPDO received at ``t_rx`` answers: the oldest unanswered SYNC
+        (first-in first-out), discarding SYNCs older than two periods + 50 ms (lost answers)."""
+        horizon = t_rx - 2.0 / self.options.sync_hz - 0.05
+        with self._sync_lock:
+            while self._sync_times and self._sync_times[0] < horizon:
+                self._sync_times.popleft()
+            if self._sync_times:
+                return self._sync_times.popleft()
+        return t_rx
+
+    def _on_tpdo1(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if len(data) < 6:
+            return
+        statusword, position = struct.unpack_from("<Hi", data)
+        t = self._sync_time_for(self.clock())
+        self.tpdo_count += 1
+        pending, self._pending_tpdo1 = self._pending_tpdo1, (t, statusword, position)
+        if pending is not None:  # its TPDO2 never came
+            self._emit(pending, math.nan)
+        with self._sw_cond:
+            self._last_sw = (t, statusword)
+            self._sw_cond.notify_all()
+
+    def _on_tpdo2(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if len(data) < 4:
+            return
+        (velocity,) = struct.unpack_from("<i", data)
+        pending, self._pending_tpdo1 = self._pending_tpdo1, None
+        if pending is not None:
+            self._emit(pending, velocity)
+
+    def _emit(self, tpdo1: tuple[float, int, int], velocity_counts: float) -> None:
+        t, statusword, position = tpdo1
+        c = self.config
+        self._push_sample(MotorSample(t, c.counts_to_rad(position), c.counts_to_rad(velocity_counts), statusword))
+
+    def _on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if not data:
+            return
+        self._last_heartbeat = self.clock()
+        self._heartbeat_state = data[0]
+
+    def _on_emcy(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        try:
+            emcy = cia402.Emcy.decode(bytes(data))
+        except ValueError:
+            log.warning("node %d: malformed EMCY %s", self.node_id, bytes(data).hex())
+            return
+        t = self.clock()
+        self.emcy_history.append((t, emcy))
+        log.info("node %d: %s", self.node_id, emcy)
+        for cb in list(self._emcy_callbacks):
+            cb(t, emcy)
+
+    def add_emcy_callback(self, callback: Callable[[float, cia402.Emcy], None]) -> None:
+        """``callback(t_host_s, emcy)`` for every EMCY frame (reset frames have ``emcy.code == 0``)."""
+        self._emcy_callbacks.append(callback)
+
+    def _watchdog(self) -> None:
+        hb = self.options.heartbeat_ms
+        if not hb or self._last_heartbeat is None or self._host_fault is not None:
+            return
+        silent_s = self.clock() - self._last_heartbeat
+        if silent_s > self.options.heartbeat_lost * hb / 1000.0:
+            self._host_fault = FaultInfo(
+                cia402.ERR_HEARTBEAT,
+                f"heartbeat lost: node {self.node_id} silent for {silent_s * 1000:.0f} ms (heartbeat every {hb} ms)",
+                0x11,
+                self.clock(),
+                source="heartbeat",
+            )
+            log.error("node %d: %s", self.node_id, self._host_fault.reason)
+            with self._sw_cond:
+                self._sw_cond.notify_all()
+            # best effort: ask the drive to stop; it may still be listening
+            threading.Thread(target=self._emergency_quick_stop, daemon=True).start()
+
+    def _emergency_quick_stop(self) -> None:
+        try:
+            self._cw(cia402.CMD_QUICK_STOP)
+        except DriverError as exc:
+            log.error("node %d: quick stop after heartbeat loss failed: %s", self.node_id, exc)
+
+    def _clear_host_fault(self) -> None:
+        fault = self._host_fault
+        if fault is None:
+            return
+        hb = self.options.heartbeat_ms
+        if self._last_heartbeat is not None and self._last_heartbeat > fault.t_host_s:
+            self._host_fault = None
+            return
+        deadline = self.clock() + 3.0 * hb / 1000.0
+        while self.clock() < deadline:  # give a returning drive a few periods to be heard
+            time.sleep(hb / 4000.0)
+            if self._last_heartbeat is not None and self._last_heartbeat > fault.t_host_s:
+                self._host_fault = None
+                return
+        raise HeartbeatLost(fault.code, fault.reason, None, "fault reset refused: still no heartbeat")
+
+    def _statusword_after(self, t: float, timeout: float) -> int:
+        deadline = self.clock() + timeout
+        with self._sw_cond:
+            while True:
+                if self._host_fault is not None:
+                    raise self._host_fault.to_exception()
+                last = self._last_sw
+                if last is not None and last[0] > t:
+                    return last[1]
+                remaining = deadline - self.clock()
+                if remaining <= 0:
+                    break
+                self._sw_cond.wait(min(remaining, 0.05))
+        # no TPDO in time (SYNC stopped, node not Operational): ask directly
+        return self._read_object(cia402.STATUSWORD)
+
+    @property
+    def heartbeat_state(self) -> int | None:
+        """NMT state byte of the last heartbeat (0x05 Operational, 0x7F Pre-operational, ...)."""
+        return self._heartbeat_state
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self._stop.set()
+        if self._sync_thread is not None and self._sync_thread is not threading.current_thread():
+            self._sync_thread.join(timeout=2.0)
+        try:
+            self.network.disconnect()
+        except Exception as exc:  # the receive thread may have died with the bus
+            log.warning("node %d: disconnect: %s", self.node_id, exc)
+        if self.on_close is not None:
+            self.on_close()
