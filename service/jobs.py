@@ -1,0 +1,286 @@
+"""The job runner: one sweep at a time, the others wait in the store's queue.
+
+A worker thread takes the oldest queued measurement, marks it running, calls the measurement
+function with a :class:`JobContext` (progress reporting, cancellation, where to put the raw log
+and the cloud), and records the outcome: ``done`` with the result, ``failed`` with the reason
+(the error's message; an unexpected exception is reported with its type), or ``cancelled``.
+The queue lives in SQLite, so queued work survives a restart and resumes in order;
+:meth:`JobRunner.start` first marks measurements a dead process left running as failed.
+
+Progress goes to the store (throttled) and to a :class:`ProgressHub`, an in-memory board of the
+latest event per measurement with a version number, which the server-sent-events endpoint polls
+without touching the database.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+
+from drivers.errors import DriverError
+from lrms.errors import LrmsError
+from service.errors import ServiceError
+from service.models import MeasurementRequest
+from service.store import FINAL_STATES, Measurement, Store, StoreError
+
+log = logging.getLogger(__name__)
+
+
+class Cancelled(ServiceError):
+    """The measurement was cancelled while it ran."""
+
+
+class ProgressHub:
+    """Latest progress event per measurement, with a version counter for cheap polling."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._events: dict[str, tuple[int, dict[str, Any]]] = {}
+        self._version = 0
+
+    def publish(self, m: Measurement, **extra: Any) -> None:
+        event = {
+            "id": m.id,
+            "state": m.state,
+            "progress": m.progress,
+            "message": m.message,
+            "error": m.error,
+            **extra,
+        }
+        with self._lock:
+            self._version += 1
+            self._events[m.id] = (self._version, event)
+            if len(self._events) > 10_000:  # forget the oldest finished ones
+                for key in list(self._events)[:1000]:
+                    if self._events[key][1]["state"] in FINAL_STATES:
+                        del self._events[key]
+
+    def progress(self, mid: str, fraction: float, message: str) -> None:
+        with self._lock:
+            old = self._events.get(mid)
+            base: dict[str, Any] = dict(old[1]) if old else {"id": mid, "state": "running", "error": None}
+            base.update(progress=fraction, message=message)
+            self._version += 1
+            self._events[mid] = (self._version, base)
+
+    def latest(self, mid: str) -> tuple[int, dict[str, Any]] | None:
+        with self._lock:
+            return self._events.get(mid)
+
+
+class Metrics:
+    """Prometheus metrics of the service (own registry, so several apps can live in one process)."""
+
+    def __init__(self, registry: CollectorRegistry | None = None) -> None:
+        self.registry = registry or CollectorRegistry()
+        self.finished = Counter(
+            "lrms_measurements_finished", "Measurements finished, by final state", ["state"], registry=self.registry
+        )
+        self.queued = Gauge("lrms_measurements_queued", "Measurements waiting in the queue", registry=self.registry)
+        self.running = Gauge("lrms_measurement_running", "1 while a sweep runs", registry=self.registry)
+        self.duration = Histogram(
+            "lrms_measurement_seconds",
+            "Wall time of a measurement (sweep, mapping, fit)",
+            buckets=(1, 2, 5, 10, 20, 30, 60, 120, 300, 600),
+            registry=self.registry,
+        )
+        self.scans = Counter("lrms_scans_received", "Scans received from the scanner", registry=self.registry)
+        self.scans_missing = Counter("lrms_scans_missing", "Scans missing (scan counter gaps)", registry=self.registry)
+        self.http_requests = Counter(
+            "lrms_http_requests", "HTTP requests", ["method", "route", "status"], registry=self.registry
+        )
+
+
+@dataclass
+class JobContext:
+    """What a measurement function gets: the request, where to write, progress and cancellation."""
+
+    measurement: Measurement
+    request: MeasurementRequest
+    raw_path: Path
+    cloud_path: Path
+    cancel_event: threading.Event
+    report: Callable[[float, str], None]
+    metrics: Metrics | None = None
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def progress(self, fraction: float, message: str) -> None:
+        self.report(fraction, message)
+
+    @property
+    def cancelled(self) -> bool:
+        return self.cancel_event.is_set()
+
+    def check_cancelled(self) -> None:
+        if self.cancel_event.is_set():
+            raise Cancelled("cancelled by request")
+
+
+MeasureFn = Callable[[JobContext], dict[str, Any]]
+
+
+class JobRunner:
+    """Runs queued measurements one at a time on a worker thread."""
+
+    def __init__(
+        self,
+        store: Store,
+        measure: MeasureFn,
+        raw_dir: Path,
+        cloud_dir: Path,
+        hub: ProgressHub | None = None,
+        metrics: Metrics | None = None,
+        progress_interval_s: float = 0.25,
+    ) -> None:
+        self.store = store
+        self.measure = measure
+        self.raw_dir = Path(raw_dir)
+        self.cloud_dir = Path(cloud_dir)
+        self.hub = hub or ProgressHub()
+        self.metrics = metrics or Metrics()
+        self.progress_interval_s = progress_interval_s
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._running_id: str | None = None
+        self._cancel = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.recovered: list[str] = []
+
+    # -- control --------------------------------------------------------------------------
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        self.raw_dir.mkdir(parents=True, exist_ok=True)
+        self.cloud_dir.mkdir(parents=True, exist_ok=True)
+        self.recovered = self.store.recover_interrupted()
+        for mid in self.recovered:
+            self.metrics.finished.labels("failed").inc()
+            self.hub.publish(self.store.get(mid))
+        self._thread = threading.Thread(target=self._loop, name="lrms-jobs", daemon=True)
+        self._thread.start()
+        self._wake.set()
+
+    def stop(self, timeout: float = 30.0) -> None:
+        """Stop the worker; a running measurement is cancelled (its motor stopped by the rig)."""
+        self._stop.set()
+        self._cancel.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+            self._thread = None
+
+    @property
+    def running_id(self) -> str | None:
+        return self._running_id
+
+    def submit(self, request: MeasurementRequest, schedule_id: str | None = None) -> Measurement:
+        m = self.store.create_measurement(request.model_dump(mode="json"), schedule_id=schedule_id)
+        self.hub.publish(m)
+        self.metrics.queued.set(len(self.store.queued()))
+        self._wake.set()
+        return m
+
+    def cancel(self, mid: str) -> Measurement:
+        """Cancel a queued measurement at once, or ask the running one to stop."""
+        with self._lock:
+            m = self.store.get(mid)
+            if m.state in FINAL_STATES:
+                raise StoreError(f"measurement {mid} is already {m.state}")
+            if m.state == "queued":
+                m = self.store.cancel(mid)
+                self.metrics.finished.labels("cancelled").inc()
+                self.hub.publish(m)
+                return m
+            if self._running_id == mid:
+                self._cancel.set()
+            return m
+
+    def wait_idle(self, timeout: float) -> bool:
+        """Block until nothing is queued or running (for tests and the CLI)."""
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if self._running_id is None and not self.store.queued():
+                return True
+            time.sleep(0.02)
+        return False
+
+    # -- worker ---------------------------------------------------------------------------
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            self._wake.wait(1.0)
+            self._wake.clear()
+            while not self._stop.is_set():
+                queued = self.store.queued()
+                self.metrics.queued.set(len(queued))
+                if not queued:
+                    break
+                self._run_one(queued[0])
+
+    def _run_one(self, m: Measurement) -> None:
+        with self._lock:
+            try:
+                m = self.store.start(m.id)
+            except StoreError:  # cancelled between listing and starting
+                return
+            self._running_id = m.id
+            self._cancel.clear()
+        self.metrics.running.set(1)
+        self.hub.publish(m)
+        t_start = time.monotonic()
+        last = [0.0]
+
+        def report(fraction: float, message: str) -> None:
+            now = time.monotonic()
+            self.hub.progress(m.id, fraction, message)
+            if now - last[0] >= self.progress_interval_s or fraction >= 1.0:
+                last[0] = now
+                self.store.set_progress(m.id, fraction, message)
+
+        ctx = JobContext(
+            measurement=m,
+            request=MeasurementRequest.model_validate(m.request),
+            raw_path=self.raw_dir / f"{m.id}.mcap",
+            cloud_path=self.cloud_dir / f"{m.id}.ply",
+            cancel_event=self._cancel,
+            report=report,
+            metrics=self.metrics,
+        )
+        state = "failed"
+        try:
+            result = self.measure(ctx)
+            self._record_paths(ctx)
+            done = self.store.finish(m.id, result)
+            state = "done"
+            self.hub.publish(done)
+        except Cancelled as exc:
+            self._record_paths(ctx)
+            state = "cancelled"
+            self.hub.publish(self.store.cancel(m.id, str(exc)))
+        except (ServiceError, DriverError, LrmsError) as exc:
+            self._record_paths(ctx)
+            reason = str(exc) or type(exc).__name__
+            self.hub.publish(self.store.fail(m.id, reason, ctx.info.get("partial_result")))
+        except Exception as exc:  # a bug: keep the traceback in the log, the reason in the store
+            log.exception("measurement %s crashed", m.id)
+            self._record_paths(ctx)
+            self.hub.publish(self.store.fail(m.id, f"internal error: {type(exc).__name__}: {exc}"))
+        finally:
+            self.metrics.finished.labels(state).inc()
+            self.metrics.duration.observe(time.monotonic() - t_start)
+            self.metrics.running.set(0)
+            with self._lock:
+                self._running_id = None
+
+    def _record_paths(self, ctx: JobContext) -> None:
+        raw = str(ctx.raw_path) if ctx.raw_path.exists() else None
+        cloud = str(ctx.cloud_path) if ctx.cloud_path.exists() else None
+        if raw or cloud:
+            self.store.set_paths(ctx.measurement.id, raw_path=raw, cloud_path=cloud)

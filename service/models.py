@@ -1,0 +1,133 @@
+"""Request and response models shared by the REST API, the job runner, schedules and the CLI.
+
+Degrees at the edge (``*_deg``), metres for lengths (``*_m``). Unknown fields are rejected so
+that a misspelt option is a 422 with the field's name, not a silent default.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from service.config import RigConfig
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class SweepSpec(_Strict):
+    """The sweep of the scan plane. Missing fields take the rig's ``[sweep]`` defaults."""
+
+    start_deg: float | None = Field(default=None, ge=-180.0, le=180.0, description="first beta (deg)")
+    stop_deg: float | None = Field(default=None, ge=-180.0, le=180.0, description="last beta (deg)")
+    speed_deg_s: float | None = Field(default=None, gt=0.0, le=360.0, description="constant sweep speed")
+    mode: Literal["constant", "step"] | None = Field(default=None, description="constant velocity or step-and-scan")
+    step_deg: float | None = Field(default=None, gt=0.0, le=90.0, description="step of the step-and-scan mode")
+    scans_per_step: int | None = Field(default=None, ge=1, le=1000)
+
+
+class RoiSpec(_Strict):
+    """Axis-aligned box in the world frame (m); points outside are not fitted."""
+
+    min_m: tuple[float, float, float] | None = None
+    max_m: tuple[float, float, float] | None = None
+
+    @model_validator(mode="after")
+    def _ordered(self) -> RoiSpec:
+        if (
+            self.min_m is not None
+            and self.max_m is not None
+            and any(a >= b for a, b in zip(self.min_m, self.max_m, strict=True))
+        ):
+            raise ValueError("roi min_m must be below max_m on every axis")
+        return self
+
+
+class FitOptions(_Strict):
+    k: float | None = Field(default=None, gt=0.0, le=10.0, description="coverage factor of the critical-point interval")
+    monte_carlo: int = Field(default=0, ge=0, le=2000, description="Monte Carlo refits for interval (c); 0 = off")
+    seed: int | None = Field(default=None, description="random seed of RANSAC and Monte Carlo")
+
+
+class MeasurementRequest(_Strict):
+    target: Literal["cylinder", "elbow"]
+    sweep: SweepSpec = Field(default_factory=SweepSpec)
+    roi: RoiSpec | None = None
+    options: FitOptions = Field(default_factory=FitOptions)
+
+
+class ResolvedSweep(BaseModel):
+    """A sweep with every field filled in (rig defaults applied)."""
+
+    start_deg: float
+    stop_deg: float
+    speed_deg_s: float
+    mode: Literal["constant", "step"]
+    step_deg: float
+    scans_per_step: int
+    acceleration_deg_s2: float
+
+
+def resolve_sweep(spec: SweepSpec, config: RigConfig) -> ResolvedSweep:
+    d = config.sweep
+    out = ResolvedSweep(
+        start_deg=d.start_deg if spec.start_deg is None else spec.start_deg,
+        stop_deg=d.stop_deg if spec.stop_deg is None else spec.stop_deg,
+        speed_deg_s=d.speed_deg_s if spec.speed_deg_s is None else spec.speed_deg_s,
+        mode=d.mode if spec.mode is None else spec.mode,
+        step_deg=d.step_deg if spec.step_deg is None else spec.step_deg,
+        scans_per_step=d.scans_per_step if spec.scans_per_step is None else spec.scans_per_step,
+        acceleration_deg_s2=d.acceleration_deg_s2,
+    )
+    if out.start_deg == out.stop_deg:
+        raise ValueError("sweep start_deg and stop_deg must differ")
+    return out
+
+
+class ScheduleRequest(_Strict):
+    """A schedule: a cron expression (UTC) or an interval, and the measurement to run."""
+
+    name: str = Field(default="", max_length=200)
+    cron: str | None = Field(default=None, description="5-field cron expression, UTC, e.g. '0 */2 * * *'")
+    interval_s: float | None = Field(default=None, ge=1.0, le=366 * 86400.0)
+    measurement: MeasurementRequest
+
+    @model_validator(mode="after")
+    def _one_trigger(self) -> ScheduleRequest:
+        if (self.cron is None) == (self.interval_s is None):
+            raise ValueError("give exactly one of cron or interval_s")
+        if self.cron is not None:
+            from croniter import croniter
+
+            if not croniter.is_valid(self.cron):
+                raise ValueError(f"not a valid cron expression: {self.cron!r}")
+        return self
+
+
+class MeasurementOut(BaseModel):
+    id: str
+    state: Literal["queued", "running", "done", "failed", "cancelled"]
+    created_at: float
+    started_at: float | None
+    finished_at: float | None
+    progress: float
+    message: str
+    request: dict[str, Any]
+    result: dict[str, Any] | None
+    error: str | None
+    has_raw: bool
+    has_cloud: bool
+    schedule_id: str | None
+
+
+class ScheduleOut(BaseModel):
+    id: str
+    name: str
+    cron: str | None
+    interval_s: float | None
+    measurement: dict[str, Any]
+    next_run: float | None
+    last_run: float | None
+    last_measurement_id: str | None

@@ -1,0 +1,98 @@
+"""Scheduled measurements: a cron expression (UTC, via croniter) or a fixed interval.
+
+Each schedule holds a measurement template. A scheduler thread wakes at the earliest due time
+(at least once a second), queues one measurement per due schedule through the job runner and
+computes the next due time from *now*: runs missed while the service was down are not replayed
+one by one; a schedule that came due during the outage runs once at start-up.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from datetime import UTC, datetime
+
+from croniter import croniter
+
+from service.jobs import JobRunner
+from service.models import MeasurementRequest, ScheduleRequest
+from service.store import Schedule, Store
+
+log = logging.getLogger(__name__)
+
+
+def next_run(cron: str | None, interval_s: float | None, after: float) -> float:
+    """The first due time strictly after ``after`` (epoch seconds)."""
+    if cron is not None:
+        it = croniter(cron, datetime.fromtimestamp(after, tz=UTC))
+        return float(it.get_next(float))
+    if interval_s is None or interval_s <= 0:
+        raise ValueError("a schedule needs a cron expression or a positive interval")
+    return after + interval_s
+
+
+class Scheduler:
+    def __init__(self, store: Store, runner: JobRunner) -> None:
+        self.store = store
+        self.runner = runner
+        self._stop = threading.Event()
+        self._wake = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.fired = 0
+
+    def add(self, req: ScheduleRequest) -> Schedule:
+        now = time.time()
+        nxt = next_run(req.cron, req.interval_s, now)
+        s = self.store.add_schedule(
+            req.measurement.model_dump(mode="json"),
+            cron=req.cron,
+            interval_s=req.interval_s,
+            next_run=nxt,
+            name=req.name,
+        )
+        self._wake.set()
+        return s
+
+    def start(self) -> None:
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._loop, name="lrms-scheduler", daemon=True)
+            self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(5.0)
+            self._thread = None
+
+    def tick(self, now: float | None = None) -> float:
+        """Queue every due schedule; return the earliest next due time (or now + 1 s)."""
+        t = time.time() if now is None else now
+        earliest = t + 1.0
+        for s in self.store.list_schedules():
+            if not s.enabled:
+                continue
+            due = s.next_run if s.next_run is not None else t
+            if due <= t:
+                mid = None
+                try:
+                    m = self.runner.submit(MeasurementRequest.model_validate(s.template), schedule_id=s.id)
+                    mid = m.id
+                    self.fired += 1
+                except Exception:  # a bad stored template must not stop the other schedules
+                    log.exception("schedule %s could not queue its measurement", s.id)
+                due = next_run(s.cron, s.interval_s, t)
+                self.store.mark_schedule_run(s.id, t, due, mid)
+            earliest = min(earliest, due)
+        return earliest
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                nxt = self.tick()
+            except Exception:
+                log.exception("scheduler tick failed")
+                nxt = time.time() + 1.0
+            self._wake.wait(max(0.05, min(1.0, nxt - time.time())))
+            self._wake.clear()
