@@ -1,0 +1,740 @@
+"""Cylinder detection and fitting that honours the rig's noise model.
+
+Pipeline (:func:`fit_cylinder`):
+
+1. **Normals** on a random subsample by PCA of k-nearest-neighbour patches (scipy ``cKDTree``),
+   as PCL's ``SACMODEL_CYLINDER`` expects them. The subsample keeps the neighbourhoods wider
+   than the range noise (about 12 mm on the LMS100), so the normals mean something.
+2. **Table plane** (RANSAC, :class:`lrms.ransac.PlaneModel`): points on the dominant plane whose
+   normals agree with it are removed; the plane is kept to place the cylinder's base.
+3. **Cylinder RANSAC** on minimal samples of 2 points + normals (:class:`CylinderModel`): the
+   axis direction is ``n1 x n2``, the axis passes through the closest points of the two normal
+   lines, the radius is the distance of the first point from that axis. Residual: distance to
+   the surface plus a penalty for the angle between the point's normal and the radial direction.
+4. **Refinement** with ``scipy.optimize.least_squares`` on the inliers:
+
+   * *line of sight* (default): every point keeps its beam (origin and direction recovered by
+     inverting Eq. 1) and the residual is the measured range minus the range at which that beam
+     meets the model cylinder, divided by ``sigma_l``. This is the maximum-likelihood fit for the
+     rig's noise, which lies almost entirely along the beam (Eq. 7). A beam that misses the model
+     gets a second residual, its miss distance over the lateral standard deviation
+     ``l * sigma_alpha``, so the objective stays continuous at the silhouette.
+   * *orthogonal distance* (``line_of_sight=False``): ``(|distance to axis| - r) / sigma``, the
+     right fit for isotropic noise. On a one-sided view with range noise it is biased low
+     (measured: see ``docs/cylinder.md``).
+
+   Inliers are then re-selected on the whole cloud (Mahalanobis-like residual below 3.5) and the
+   fit is repeated.
+
+The parameters' covariance is expressed in a local frame at the solution: ``theta = (t1, t2,
+s1, s2, r)``, the axis direction ``normalize(w + t1 e1 + t2 e2)``, the axis point ``a + s1 e1 +
+s2 e2`` and the radius ``r``, where ``e1, e2`` (:attr:`CylinderFit.frame`) are perpendicular to the
+fitted direction ``w`` and ``a`` is the fitted axis point.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import least_squares
+from scipy.spatial import cKDTree
+
+from lrms import kinematics
+from lrms.covariance import NoiseModel
+from lrms.errors import FitError
+from lrms.ransac import PlaneModel, ransac
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+#: Inlier gate on the whitened residual during refinement.
+INLIER_GATE = 3.5
+#: Parameter steps for the central-difference Jacobian: tilt (rad), shift (m), radius (m).
+_STEPS = np.array([1e-6, 1e-6, 1e-6, 1e-6, 1e-6])
+
+
+def _unit(v: ArrayLike) -> FloatArray:
+    a = np.asarray(v, dtype=np.float64)
+    return np.asarray(a / np.linalg.norm(a, axis=-1, keepdims=True), dtype=np.float64)
+
+
+def perpendicular_frame(w: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """Two unit vectors ``e1, e2`` with ``(e1, e2, w)`` right-handed and orthonormal."""
+    wu = _unit(w)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(wu[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = _unit(np.cross(helper, wu))
+    e2 = np.cross(wu, e1)
+    return e1, np.asarray(e2, dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class Cylinder:
+    """An infinite circular cylinder: a point on the axis, the unit axis direction, the radius."""
+
+    point: FloatArray
+    direction: FloatArray
+    radius: float
+
+    def __post_init__(self) -> None:
+        p = np.asarray(self.point, dtype=np.float64).reshape(3)
+        d = np.asarray(self.direction, dtype=np.float64).reshape(3)
+        nd = float(np.linalg.norm(d))
+        if not (np.all(np.isfinite(p)) and np.isfinite(nd) and nd > 0 and np.isfinite(self.radius)):
+            raise FitError("cylinder parameters must be finite with a non-zero axis direction")
+        if self.radius <= 0:
+            raise FitError(f"cylinder radius must be > 0, got {self.radius}")
+        object.__setattr__(self, "point", p)
+        object.__setattr__(self, "direction", d / nd)
+        object.__setattr__(self, "radius", float(self.radius))
+
+    @property
+    def diameter(self) -> float:
+        return 2.0 * self.radius
+
+    def radial(self, points: ArrayLike) -> FloatArray:
+        """Component of ``points - point`` perpendicular to the axis, ``(N, 3)``."""
+        v = np.asarray(points, dtype=np.float64) - self.point
+        return np.asarray(v - (v @ self.direction)[..., None] * self.direction, dtype=np.float64)
+
+    def axis_distance(self, points: ArrayLike) -> FloatArray:
+        return np.asarray(np.linalg.norm(self.radial(points), axis=-1), dtype=np.float64)
+
+    def surface_distance(self, points: ArrayLike) -> FloatArray:
+        """Signed orthogonal distance to the surface (positive outside)."""
+        return self.axis_distance(points) - self.radius
+
+    def ray_range(self, origins: ArrayLike, dirs: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """Range at which unit rays first meet the surface, and the miss distance.
+
+        Returns ``(t, gap)``: for a hit, ``t`` is the near intersection and ``gap`` is 0; for a
+        miss, ``t`` is the range of closest approach to the axis and ``gap`` (> 0) how far the
+        ray passes outside the surface there.
+        """
+        t, gap = _ray_cylinder(
+            np.asarray(origins, dtype=np.float64),
+            np.asarray(dirs, dtype=np.float64),
+            self.point,
+            self.direction,
+            np.asarray(self.radius),
+        )
+        return t, gap
+
+    def with_point_near(self, reference: ArrayLike) -> Cylinder:
+        """Same cylinder with its axis point moved to the foot of ``reference`` on the axis."""
+        ref = np.asarray(reference, dtype=np.float64)
+        a = self.point + float((ref - self.point) @ self.direction) * self.direction
+        return Cylinder(a, self.direction, self.radius)
+
+
+def _ray_cylinder(
+    o: FloatArray, u: FloatArray, a: FloatArray, w: FloatArray, r: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Broadcasting core of :meth:`Cylinder.ray_range`.
+
+    ``o, u``: ``(..., N, 3)``; ``a, w``: ``(..., 3)`` (one axis per leading index); ``r``: ``(...)``.
+    """
+    a_ = a[..., None, :]
+    w_ = w[..., None, :]
+    v = o - a_
+    vp = v - np.sum(v * w_, axis=-1, keepdims=True) * w_
+    up = u - np.sum(u * w_, axis=-1, keepdims=True) * w_
+    aa = np.maximum(np.sum(up * up, axis=-1), 1e-300)
+    bb = np.sum(vp * up, axis=-1)
+    cc = np.sum(vp * vp, axis=-1)
+    t_ca = -bb / aa
+    d_ca2 = np.maximum(cc - bb * bb / aa, 0.0)
+    rr = np.asarray(r, dtype=np.float64)[..., None]
+    disc = aa * (rr * rr - d_ca2)
+    hit = disc >= 0
+    t = np.where(hit, t_ca - np.sqrt(np.where(hit, disc, 0.0)) / aa, t_ca)
+    gap = np.where(hit, 0.0, np.sqrt(d_ca2) - rr)
+    return np.asarray(t, dtype=np.float64), np.asarray(gap, dtype=np.float64)
+
+
+# --------------------------------------------------------------------------- rays & normals
+
+
+@dataclass(frozen=True)
+class Rays:
+    """Beams of the measured points: origins ``(N, 3)``, unit directions ``(N, 3)``, ranges ``(N,)``,
+    and per-point standard deviations along (``sigma_l``) and across (``sigma_perp``) the beam."""
+
+    origins: FloatArray
+    dirs: FloatArray
+    ranges: FloatArray
+    sigma_l: FloatArray
+    sigma_perp: FloatArray
+
+    def subset(self, idx: ArrayLike) -> Rays:
+        i = np.asarray(idx)
+        return Rays(self.origins[i], self.dirs[i], self.ranges[i], self.sigma_l[i], self.sigma_perp[i])
+
+    def points(self) -> FloatArray:
+        return np.asarray(self.origins + self.ranges[:, None] * self.dirs, dtype=np.float64)
+
+
+def rays_from_points(points: ArrayLike, p: float = kinematics.DEFAULT_P, noise: NoiseModel | None = None) -> Rays:
+    """Recover each rig-frame point's beam by inverting Eq. 1 (the rig at the origin)."""
+    nm = noise if noise is not None else NoiseModel()
+    pts = np.asarray(points, dtype=np.float64)
+    l, alpha, beta = kinematics.inverse(pts, p)
+    origins, dirs = kinematics.beam_rays(alpha, beta, p)
+    lat = np.hypot(l * nm.sigma_alpha, (l * np.sin(alpha) + p) * nm.sigma_beta)
+    return Rays(
+        origins=origins,
+        dirs=dirs,
+        ranges=l,
+        sigma_l=np.full(l.shape, nm.sigma_l),
+        sigma_perp=np.maximum(lat, 1e-7),
+    )
+
+
+def estimate_normals(points: ArrayLike, k: int = 24, chunk: int = 50_000) -> FloatArray:
+    """Unit normals by PCA of each point's ``k`` nearest neighbours (smallest-eigenvalue axis)."""
+    pts = np.asarray(points, dtype=np.float64)
+    n = pts.shape[0]
+    if n < 3:
+        raise FitError(f"need at least 3 points for normals, got {n}")
+    kk = int(min(max(k, 3), n))
+    tree = cKDTree(pts)
+    out = np.empty_like(pts)
+    for s in range(0, n, chunk):
+        _, idx = tree.query(pts[s : s + chunk], k=kk)
+        nb = pts[idx]
+        nb = nb - nb.mean(axis=1, keepdims=True)
+        cov = np.einsum("nki,nkj->nij", nb, nb)
+        _, vecs = np.linalg.eigh(cov)
+        out[s : s + chunk] = vecs[:, :, 0]
+    return out
+
+
+# --------------------------------------------------------------------------- RANSAC models
+
+
+class CylinderModel:
+    """RANSAC model on rows ``(x, y, z, nx, ny, nz)``: a cylinder from 2 points with normals.
+
+    ``normal_weight`` (m per rad) converts the angle between a point's normal and the model's
+    radial direction into distance in the residual.
+    """
+
+    normal_weight = 0.02
+    radius_range: tuple[float, float] = (0.005, 2.0)
+
+    def __init__(self) -> None:
+        self.cylinder: Cylinder | None = None
+
+    def estimate(self, data: FloatArray) -> bool:
+        d = np.asarray(data, dtype=np.float64)
+        if d.shape[0] < 2 or d.shape[1] < 6:
+            return False
+        if d.shape[0] > 2:
+            return self._estimate_many(d)
+        p1, n1, p2, n2 = d[0, :3], d[0, 3:6], d[1, :3], d[1, 3:6]
+        w = np.cross(n1, n2)
+        sw = float(np.linalg.norm(w))
+        if sw < 0.05:  # normals nearly parallel: axis undefined
+            return False
+        w = w / sw
+        # closest points of the lines p1 + s n1 and p2 + t n2
+        r12 = p1 - p2
+        b = float(n1 @ n2)
+        denom = 1.0 - b * b
+        e, f = float(n1 @ r12), float(n2 @ r12)
+        s = (b * f - e) / denom
+        t = (f - b * e) / denom
+        c = 0.5 * ((p1 + s * n1) + (p2 + t * n2))
+        cyl_r = float(np.linalg.norm(Cylinder(c, w, 1.0).radial(p1)))
+        lo, hi = self.radius_range
+        if not (lo <= cyl_r <= hi):
+            return False
+        self.cylinder = Cylinder(c, w, cyl_r)
+        return True
+
+    def _estimate_many(self, d: FloatArray) -> bool:
+        """Least-squares polish on many inliers (orthogonal distance), from a 2-point start."""
+        if self.cylinder is None:
+            # start from the best pair among a few
+            best: Cylinder | None = None
+            for i in range(1, min(d.shape[0], 8)):
+                m = CylinderModel()
+                if m.estimate(d[[0, i]]):
+                    best = m.cylinder
+                    break
+            if best is None:
+                return False
+            self.cylinder = best
+        try:
+            fit = refine_cylinder(d[:, :3], self.cylinder, rays=None, sigma=1.0, max_rounds=1)
+        except FitError:
+            return False
+        self.cylinder = fit.cylinder
+        return True
+
+    def residuals(self, data: FloatArray) -> FloatArray:
+        if self.cylinder is None:
+            raise FitError("model not estimated")
+        d = np.asarray(data, dtype=np.float64)
+        rad = self.cylinder.radial(d[:, :3])
+        dist = np.linalg.norm(rad, axis=1)
+        res = np.abs(dist - self.cylinder.radius)
+        if d.shape[1] >= 6:
+            cosang = np.abs(np.sum(rad * d[:, 3:6], axis=1)) / np.maximum(dist, 1e-12)
+            res = res + self.normal_weight * np.arccos(np.clip(cosang, 0.0, 1.0))
+        return np.asarray(res, dtype=np.float64)
+
+
+# --------------------------------------------------------------------------- refinement
+
+
+@dataclass(frozen=True)
+class _Frame:
+    a: FloatArray
+    w: FloatArray
+    e1: FloatArray
+    e2: FloatArray
+    r0: float
+
+    @classmethod
+    def at(cls, cyl: Cylinder) -> _Frame:
+        e1, e2 = perpendicular_frame(cyl.direction)
+        return cls(cyl.point, cyl.direction, e1, e2, cyl.radius)
+
+    def unpack(self, theta: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        th = np.asarray(theta, dtype=np.float64)
+        w = self.w + th[..., 0:1] * self.e1 + th[..., 1:2] * self.e2
+        w = w / np.linalg.norm(w, axis=-1, keepdims=True)
+        a = self.a + th[..., 2:3] * self.e1 + th[..., 3:4] * self.e2
+        return a, w, self.r0 + th[..., 4]
+
+    def cylinder(self, theta: FloatArray) -> Cylinder:
+        a, w, r = self.unpack(theta)
+        return Cylinder(a, w, float(r))
+
+
+def _param_derivatives(frame: _Frame, theta: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """``d w / d theta`` and ``d a / d theta`` as ``(..., 5, 3)`` arrays."""
+    th = np.asarray(theta, dtype=np.float64)
+    raw = frame.w + th[..., 0:1] * frame.e1 + th[..., 1:2] * frame.e2
+    nrm = np.linalg.norm(raw, axis=-1, keepdims=True)
+    w = raw / nrm
+    dw = np.zeros((*th.shape[:-1], 5, 3))
+    da = np.zeros((*th.shape[:-1], 5, 3))
+    for j, e in enumerate((frame.e1, frame.e2)):
+        dw[..., j, :] = (e - np.sum(w * e, axis=-1, keepdims=True) * w) / nrm
+        da[..., j + 2, :] = e
+    return dw, da
+
+
+def los_residuals(
+    theta: FloatArray,
+    frame: _Frame,
+    origins: FloatArray,
+    dirs: FloatArray,
+    ranges: FloatArray,
+    sigma_l: FloatArray,
+    sigma_perp: FloatArray,
+) -> FloatArray:
+    """Whitened line-of-sight residuals ``(..., 2N)``: range part then miss part.
+
+    ``theta``: ``(..., 5)``; beams ``(..., N, 3)`` broadcast against it.
+    """
+    a, w, r = frame.unpack(theta)
+    t, gap = _ray_cylinder(origins, dirs, a, w, r)
+    return np.concatenate([(ranges - t) / sigma_l, gap / sigma_perp], axis=-1)
+
+
+def los_jacobian(
+    theta: FloatArray,
+    frame: _Frame,
+    origins: FloatArray,
+    dirs: FloatArray,
+    sigma_l: FloatArray,
+    sigma_perp: FloatArray,
+) -> FloatArray:
+    """Analytic Jacobian ``(..., 2N, 5)`` of :func:`los_residuals`.
+
+    Hit: implicit differentiation of ``|P(X - a)|^2 = r^2`` at ``X = o + t u`` gives
+    ``dt = (q.da + h v.dw + r dr) / (q.u)`` (``v = X - a``, ``h = v.w``, ``q = v - h w``).
+    Miss: ``t`` is the closest approach (``d(q.u) = 0``) and the gap's derivative follows from
+    the envelope theorem: ``d gap = -(q.da + h v.dw) / |q| - dr``.
+    """
+    a, w, r = frame.unpack(theta)
+    t, gap = _ray_cylinder(origins, dirs, a, w, r)
+    dw, da = _param_derivatives(frame, theta)
+    x = origins + t[..., None] * dirs
+    v = x - a[..., None, :]
+    h = np.sum(v * w[..., None, :], axis=-1)
+    q = v - h[..., None] * w[..., None, :]
+    # (..., N, 5) pieces: q.da_j and v.dw_j
+    da_t = np.swapaxes(da, -1, -2)  # (..., 3, 5)
+    dw_t = np.swapaxes(dw, -1, -2)
+    q_da = q @ da_t
+    v_dw = v @ dw_t
+    dr = np.zeros(5)
+    dr[4] = 1.0
+    hit = gap <= 0
+    qu = np.sum(q * dirs, axis=-1)
+    safe_qu = np.where(np.abs(qu) > 1e-300, qu, 1e-300)
+    dt_hit = (q_da + h[..., None] * v_dw + r[..., None, None] * dr) / safe_qu[..., None]
+    # miss: closest approach H = q.u = 0 -> dt = -(dH/dtheta) / A
+    uw = np.sum(dirs * w[..., None, :], axis=-1)
+    big_a = np.maximum(1.0 - uw * uw, 1e-300)
+    u_da = dirs @ da_t
+    w_da = w[..., None, :] @ da_t
+    u_dw = dirs @ dw_t
+    dh = -u_da + uw[..., None] * w_da - v_dw * uw[..., None] - h[..., None] * u_dw
+    dt_miss = -dh / big_a[..., None]
+    qn = np.maximum(np.linalg.norm(q, axis=-1), 1e-300)
+    dgap = -(q_da + h[..., None] * v_dw) / qn[..., None] - dr
+    dt = np.where(hit[..., None], dt_hit, dt_miss)
+    jr = -dt / np.asarray(sigma_l)[..., None]
+    jg = np.where(hit[..., None], 0.0, dgap / np.asarray(sigma_perp)[..., None])
+    return np.asarray(np.concatenate([jr, jg], axis=-2), dtype=np.float64)
+
+
+def orthogonal_residuals(theta: FloatArray, frame: _Frame, points: FloatArray, sigma: FloatArray) -> FloatArray:
+    """Whitened orthogonal-distance residuals ``(..., N)``."""
+    a, w, r = frame.unpack(theta)
+    v = points - a[..., None, :]
+    vw = np.sum(v * w[..., None, :], axis=-1)
+    dist = np.sqrt(np.maximum(np.sum(v * v, axis=-1) - vw * vw, 0.0))
+    return np.asarray((dist - r[..., None]) / sigma, dtype=np.float64)
+
+
+def orthogonal_jacobian(theta: FloatArray, frame: _Frame, points: FloatArray, sigma: FloatArray) -> FloatArray:
+    """Analytic Jacobian ``(..., N, 5)`` of :func:`orthogonal_residuals`."""
+    a, w, _ = frame.unpack(theta)
+    dw, da = _param_derivatives(frame, theta)
+    v = points - a[..., None, :]
+    h = np.sum(v * w[..., None, :], axis=-1)
+    q = v - h[..., None] * w[..., None, :]
+    qn = np.maximum(np.linalg.norm(q, axis=-1), 1e-300)
+    q_da = q @ np.swapaxes(da, -1, -2)
+    v_dw = v @ np.swapaxes(dw, -1, -2)
+    dr = np.zeros(5)
+    dr[4] = 1.0
+    jac = (-(q_da + h[..., None] * v_dw) / qn[..., None] - dr) / np.asarray(sigma)[..., None]
+    return np.asarray(jac, dtype=np.float64)
+
+
+def central_jacobian(fun: Callable[[FloatArray], FloatArray], theta: FloatArray) -> FloatArray:
+    """Central-difference Jacobian of a residual function that broadcasts over leading axes
+    (a check on the analytic ones). ``theta``: ``(..., 5)``; returns ``(..., m, 5)``."""
+    th = np.asarray(theta, dtype=np.float64)
+    n = th.shape[-1]
+    eye = np.eye(n) * _STEPS[:n]
+    pert = np.concatenate([th[..., None, :] + eye, th[..., None, :] - eye], axis=-2)  # (..., 2n, n)
+    f = fun(pert)  # (..., 2n, m)
+    diff = (f[..., :n, :] - f[..., n:, :]) / (2.0 * _STEPS[:n, None])
+    return np.asarray(np.swapaxes(diff, -1, -2), dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class CylinderFit:
+    """Result of a cylinder fit.
+
+    ``rmse``: rms of the range residuals (m) for a line-of-sight fit, of the orthogonal distances
+    otherwise. ``covariance``: ``(5, 5)`` covariance of ``theta = (t1, t2, s1, s2, r)`` in
+    :attr:`frame` (see the module docstring). ``chi2_dof``: sum of squared whitened residuals over
+    the degrees of freedom (about 1 when the noise model is right).
+    """
+
+    cylinder: Cylinder
+    inliers: IntArray
+    rmse: float
+    covariance: FloatArray
+    frame: tuple[FloatArray, FloatArray]
+    line_of_sight: bool
+    chi2_dof: float
+    sigma_scale: float
+    plane: tuple[FloatArray, float] | None = None
+    base_point: FloatArray | None = None
+    n_points: int = 0
+    extra: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def diameter(self) -> float:
+        return self.cylinder.diameter
+
+    @property
+    def std_diameter(self) -> float:
+        """GUM standard uncertainty of the diameter from the fit covariance: ``2 sqrt(var r)``."""
+        return float(2.0 * np.sqrt(max(self.covariance[4, 4], 0.0)))
+
+    @property
+    def n_inliers(self) -> int:
+        return int(self.inliers.size)
+
+
+Residuals = Callable[[FloatArray], FloatArray]
+
+
+def _solve(fun: Residuals, jac: Residuals, max_nfev: int) -> FloatArray:
+    res = least_squares(
+        fun,
+        np.zeros(5),
+        jac=jac,
+        method="lm",
+        x_scale=np.array([1e-3, 1e-3, 1e-3, 1e-3, 1e-3]),
+        max_nfev=max_nfev,
+    )
+    if not np.all(np.isfinite(res.x)):
+        raise FitError("cylinder refinement diverged")
+    return np.asarray(res.x, dtype=np.float64)
+
+
+def _covariance(jac: FloatArray) -> FloatArray:
+    jtj = jac.T @ jac
+    try:
+        return np.asarray(np.linalg.inv(jtj), dtype=np.float64)
+    except np.linalg.LinAlgError as exc:  # pragma: no cover - degenerate geometry
+        raise FitError("cylinder fit is degenerate (singular normal matrix)") from exc
+
+
+def refine_cylinder(
+    points: ArrayLike,
+    initial: Cylinder,
+    *,
+    rays: Rays | None = None,
+    sigma: float | None = None,
+    max_rounds: int = 3,
+    gate: float = INLIER_GATE,
+    max_nfev: int = 200,
+) -> CylinderFit:
+    """Least-squares refinement from ``initial`` with inlier re-selection on ``points``.
+
+    With ``rays`` (one per point): the line-of-sight fit, covariance from the a priori noise
+    model. Without: the orthogonal-distance fit with isotropic ``sigma`` (m); ``sigma=None``
+    estimates it from the residuals (the covariance is then scaled by the posterior variance).
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise FitError(f"points must have shape (N, 3), got {pts.shape}")
+    if pts.shape[0] < 6:
+        raise FitError(f"a cylinder fit needs at least 6 points, got {pts.shape[0]}")
+    if rays is not None and rays.ranges.shape[0] != pts.shape[0]:
+        raise FitError("rays and points differ in length")
+    cyl = initial.with_point_near(pts.mean(axis=0))
+    idx = np.arange(pts.shape[0])
+    use_los = rays is not None
+    sig = 1.0 if sigma is None else float(sigma)
+
+    def make_fun(frame: _Frame, sel: IntArray) -> tuple[Residuals, Residuals]:
+        if rays is not None:
+            rs = rays.subset(sel)
+            return (
+                lambda th: los_residuals(th, frame, rs.origins, rs.dirs, rs.ranges, rs.sigma_l, rs.sigma_perp),
+                lambda th: los_jacobian(th, frame, rs.origins, rs.dirs, rs.sigma_l, rs.sigma_perp),
+            )
+        ps = pts[sel]
+        sg = np.asarray(sig)
+        return (
+            lambda th: orthogonal_residuals(th, frame, ps, sg),
+            lambda th: orthogonal_jacobian(th, frame, ps, sg),
+        )
+
+    def whitened_all(c: Cylinder) -> FloatArray:
+        if rays is not None:
+            t, gap = c.ray_range(rays.origins, rays.dirs)
+            return np.asarray(np.hypot((rays.ranges - t) / rays.sigma_l, gap / rays.sigma_perp), dtype=np.float64)
+        return np.asarray(np.abs(c.surface_distance(pts)) / sig, dtype=np.float64)
+
+    for round_ in range(max_rounds):
+        if idx.size < 6:
+            raise FitError(f"too few inliers left for a cylinder fit ({idx.size})")
+        frame = _Frame.at(cyl)
+        theta = _solve(*make_fun(frame, idx), max_nfev)
+        cyl = frame.cylinder(theta).with_point_near(pts[idx].mean(axis=0))
+        if cyl.radius <= 0:
+            raise FitError("cylinder refinement gave a non-positive radius")
+        if not use_los and sigma is None:
+            sig = max(float(np.sqrt(np.mean(np.square(cyl.surface_distance(pts[idx]))))), 1e-9)
+        if round_ == max_rounds - 1:
+            break
+        new_idx = np.flatnonzero(whitened_all(cyl) < gate)
+        if np.array_equal(new_idx, idx):
+            break
+        idx = new_idx
+
+    frame = _Frame.at(cyl)
+    fun, jfun = make_fun(frame, idx)
+    r0 = fun(np.zeros(5))
+    jac = jfun(np.zeros(5))
+    dof = max(idx.size - 5, 1)
+    chi2_dof = float(np.sum(r0 * r0) / dof)
+    cov = _covariance(jac)
+    scale = 1.0
+    if use_los:
+        assert rays is not None
+        t, _ = cyl.ray_range(rays.origins[idx], rays.dirs[idx])
+        rmse = float(np.sqrt(np.mean(np.square(rays.ranges[idx] - t))))
+    else:
+        rmse = float(np.sqrt(np.mean(np.square(cyl.surface_distance(pts[idx])))))
+        if sigma is None:
+            scale = chi2_dof  # posterior variance factor (sigma estimated from the data)
+            cov = cov * scale
+    return CylinderFit(
+        cylinder=cyl,
+        inliers=idx,
+        rmse=rmse,
+        covariance=cov,
+        frame=(frame.e1, frame.e2),
+        line_of_sight=use_los,
+        chi2_dof=chi2_dof,
+        sigma_scale=float(np.sqrt(scale)),
+        n_points=int(pts.shape[0]),
+    )
+
+
+# --------------------------------------------------------------------------- detection
+
+
+@dataclass(frozen=True)
+class DetectOptions:
+    """Tuning of :func:`detect_cylinder`; distances in metres."""
+
+    sample_size: int = 3000
+    normal_k: int = 24
+    threshold: float = 0.03
+    normal_weight: float = 0.02
+    radius_range: tuple[float, float] = (0.01, 2.0)
+    plane_threshold: float = 0.02
+    plane_min_share: float = 0.1
+    plane_normal_deg: float = 25.0
+    max_trials: int = 2000
+    min_inliers: int = 20
+
+
+def detect_plane(
+    points: ArrayLike, threshold: float, rng: np.random.Generator, min_share: float = 0.1
+) -> tuple[FloatArray, float, NDArray[np.bool_]] | None:
+    """Dominant plane ``(normal, offset, inlier mask)`` of a cloud, or ``None`` if it holds less
+    than ``min_share`` of the points."""
+    pts = np.asarray(points, dtype=np.float64)
+    try:
+        model, mask = ransac(pts, PlaneModel, 3, threshold, max_trials=500, rng=rng, score_size=5000)
+    except FitError:
+        return None
+    if np.count_nonzero(mask) < min_share * pts.shape[0]:
+        return None
+    return model.normal, model.offset, mask
+
+
+def detect_cylinder(
+    points: ArrayLike, options: DetectOptions | None = None, rng: np.random.Generator | None = None
+) -> tuple[Cylinder, tuple[FloatArray, float] | None]:
+    """Rough cylinder (RANSAC, 2 points + normals) and the table plane if one was found."""
+    opt = options if options is not None else DetectOptions()
+    g = rng if rng is not None else np.random.default_rng(0)
+    pts = np.asarray(points, dtype=np.float64)
+    n = pts.shape[0]
+    if n < opt.min_inliers:
+        raise FitError(f"too few points to detect a cylinder: {n} (need {opt.min_inliers})")
+    sub = pts[g.choice(n, size=opt.sample_size, replace=False)] if n > opt.sample_size else pts
+    normals = estimate_normals(sub, opt.normal_k)
+    plane: tuple[FloatArray, float] | None = None
+    keep = np.ones(sub.shape[0], dtype=bool)
+    found = detect_plane(sub, opt.plane_threshold, g, opt.plane_min_share)
+    if found is not None:
+        pn, po, pmask = found
+        agree = np.abs(normals @ pn) > np.cos(np.deg2rad(opt.plane_normal_deg))
+        on_plane = pmask & agree
+        if np.count_nonzero(on_plane) >= opt.plane_min_share * sub.shape[0]:
+            plane = (pn, po)
+            keep = ~on_plane
+    data = np.hstack([sub[keep], normals[keep]])
+
+    class _Model(CylinderModel):
+        normal_weight = opt.normal_weight
+        radius_range = opt.radius_range
+
+    min_inl = max(opt.min_inliers // 2, int(0.02 * data.shape[0]), 6)
+    model, _ = ransac(
+        data,
+        _Model,
+        2,
+        opt.threshold,
+        max_trials=opt.max_trials,
+        min_inliers=min_inl,
+        refine=False,
+        rng=g,
+    )
+    assert model.cylinder is not None
+    return model.cylinder, plane
+
+
+def fit_cylinder(
+    points: ArrayLike,
+    *,
+    line_of_sight: bool = True,
+    p: float = kinematics.DEFAULT_P,
+    noise: NoiseModel | None = None,
+    rays: Rays | None = None,
+    options: DetectOptions | None = None,
+    initial: Cylinder | None = None,
+    rng: np.random.Generator | None = None,
+) -> CylinderFit:
+    """Detect and fit the cylinder in a rig-frame cloud.
+
+    ``line_of_sight``: refine with the range residual along each point's beam; the beams come from
+    ``rays`` if given, else from inverting Eq. 1 with the rig at the origin and inner parameter
+    ``p``. Otherwise the orthogonal-distance fit with isotropic noise (``sigma`` estimated from
+    the residuals). ``initial`` skips detection. Raises :class:`FitError` when no cylinder is found.
+    """
+    nm = noise if noise is not None else NoiseModel()
+    opt = options if options is not None else DetectOptions(threshold=max(0.03, 2.5 * nm.sigma_l))
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise FitError(f"points must have shape (N, 3), got {pts.shape}")
+    finite = np.all(np.isfinite(pts), axis=1)
+    if not np.all(finite):
+        raise FitError(f"{int(np.count_nonzero(~finite))} point(s) are not finite")
+    if pts.shape[0] < opt.min_inliers:
+        raise FitError(f"too few points for a cylinder: {pts.shape[0]} (need {opt.min_inliers})")
+    plane: tuple[FloatArray, float] | None = None
+    if initial is None:
+        initial, plane = detect_cylinder(pts, opt, rng)
+    # first pass: candidates near the rough surface, orthogonal polish (robust start)
+    band = np.flatnonzero(np.abs(initial.surface_distance(pts)) < 1.5 * opt.threshold)
+    if band.size < opt.min_inliers:
+        raise FitError(f"no cylinder found: only {band.size} points near the best candidate")
+    rough = refine_cylinder(pts[band], initial, sigma=None, max_rounds=2, gate=3.0)
+    if line_of_sight:
+        rr = rays if rays is not None else rays_from_points(pts, p, nm)
+        # gate on the whole cloud with the rough model, then the line-of-sight fit
+        t, gap = rough.cylinder.ray_range(rr.origins, rr.dirs)
+        cand = np.flatnonzero((np.abs(rr.ranges - t) < 2.0 * opt.threshold) & (gap < 2.0 * opt.threshold))
+        if cand.size < opt.min_inliers:
+            raise FitError(f"no cylinder found: only {cand.size} points on the candidate's lines of sight")
+        fit = refine_cylinder(pts[cand], rough.cylinder, rays=rr.subset(cand), max_rounds=4)
+        inl = cand[fit.inliers]
+    else:
+        cand = np.flatnonzero(np.abs(rough.cylinder.surface_distance(pts)) < 2.0 * opt.threshold)
+        fit = refine_cylinder(pts[cand], rough.cylinder, sigma=None, max_rounds=4, gate=3.0)
+        inl = cand[fit.inliers]
+    if inl.size < opt.min_inliers:
+        raise FitError(f"no cylinder found: only {inl.size} inliers after refinement")
+    base = None
+    if plane is not None:
+        pn, po = plane
+        denom = float(pn @ fit.cylinder.direction)
+        if abs(denom) > 1e-6:
+            s = (po - float(pn @ fit.cylinder.point)) / denom
+            base = fit.cylinder.point + s * fit.cylinder.direction
+    return CylinderFit(
+        cylinder=fit.cylinder,
+        inliers=inl,
+        rmse=fit.rmse,
+        covariance=fit.covariance,
+        frame=fit.frame,
+        line_of_sight=fit.line_of_sight,
+        chi2_dof=fit.chi2_dof,
+        sigma_scale=fit.sigma_scale,
+        plane=plane,
+        base_point=base,
+        n_points=int(pts.shape[0]),
+    )

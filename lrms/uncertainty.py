@@ -1,0 +1,404 @@
+"""Uncertainty of a fitted diameter, three ways.
+
+a. :func:`critical_point_interval`: seed 003, Eq. 8-12. Every surface point carries its
+   k-ellipsoid (Eq. 4, 7). Its *centripetal radius* ``r_ce`` is how far the ellipsoid reaches
+   towards the axis: ``r_ce = r - min{distance to axis of x : x in the ellipsoid}`` (Eq. 12).
+   The critical point is the point at the 25th percentile of ``r_ce``; the interval is
+   ``[d - 2 r_ce, d + 2 r_ce]``.
+
+   Eq. 12 is solved exactly in closed form up to one monotone 1-D root: the distance to the
+   axis depends only on the projection onto the plane perpendicular to the axis, where the
+   ellipsoid becomes the ellipse of ``S = P Sigma P^T`` (2 x 2) centred at ``c``. The nearest
+   point to the axis is ``y = mu (S + mu I)^-1 c`` with ``mu > 0`` solving
+   ``sum_i s_i c_i^2 / (s_i + mu)^2 = k^2`` (eigenbasis of ``S``); ``1/sqrt`` of the left side is
+   concave and increasing in ``mu``, so Newton's method from ``mu = 0`` converges monotonically.
+   :func:`centripetal_radius_eq12` solves the same problem with a general constrained optimiser
+   (SLSQP) as the reference, and :func:`centripetal_radii_first_order` gives the tangent-plane
+   approximation ``k sqrt(n^T Sigma n)``.
+b. :func:`gum_interval`: ``u(d) = 2 sqrt(var r)`` from the fit's covariance (GUM, linearised),
+   expanded with coverage factor 2.
+c. :func:`monte_carlo_interval`: GUM Supplement 1. The scan is re-simulated from the fitted
+   cylinder with the noise model (the same beams, Eq. 5 noise on ``(l, alpha, beta)``), every
+   replica is refitted (batched Gauss-Newton from the fit, same residuals as
+   :func:`lrms.cylinder.refine_cylinder`), and the 2.5 / 97.5 % quantiles are the interval.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import minimize
+
+from lrms import kinematics
+from lrms.covariance import NoiseModel, covariances_of_points
+from lrms.cylinder import (
+    Cylinder,
+    CylinderFit,
+    Rays,
+    _Frame,
+    los_jacobian,
+    los_residuals,
+    orthogonal_jacobian,
+    orthogonal_residuals,
+    perpendicular_frame,
+)
+from lrms.errors import FitError, LrmsError
+
+FloatArray = NDArray[np.float64]
+
+#: Seed 003: the critical point sits at the 25th percentile of the centripetal radii.
+CRITICAL_PERCENTILE = 25.0
+
+
+def _check_k(k: float) -> float:
+    kk = float(k)
+    if not np.isfinite(kk) or kk <= 0:
+        raise LrmsError(f"k must be > 0, got {k}")
+    return kk
+
+
+def _projected(cyl: Cylinder, points: FloatArray, covs: FloatArray) -> tuple[FloatArray, FloatArray]:
+    e1, e2 = perpendicular_frame(cyl.direction)
+    pm = np.stack([e1, e2])  # (2, 3)
+    v = points - cyl.point
+    c = v @ pm.T  # (N, 2)
+    s = np.einsum("ai,nij,bj->nab", pm, covs, pm)  # (N, 2, 2)
+    return c, s
+
+
+def min_axis_distance(cyl: Cylinder, points: ArrayLike, covs: ArrayLike, k: float) -> FloatArray:
+    """Eq. 12, exactly: the smallest distance to the axis over each point's k-ellipsoid, ``(N,)``."""
+    kk = _check_k(k)
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    cv = np.asarray(covs, dtype=np.float64).reshape(-1, 3, 3)
+    c, s = _projected(cyl, pts, cv)
+    # eigen-decomposition of the symmetric 2x2 matrices, closed form
+    a, b, d = s[:, 0, 0], s[:, 0, 1], s[:, 1, 1]
+    mean = 0.5 * (a + d)
+    rad = np.hypot(0.5 * (a - d), b)
+    s1 = np.maximum(mean + rad, 1e-300)
+    s2 = np.maximum(mean - rad, 1e-30 * s1)
+    ang = 0.5 * np.arctan2(2 * b, a - d)
+    ca, sa = np.cos(ang), np.sin(ang)
+    c1 = ca * c[:, 0] + sa * c[:, 1]  # component along the s1 eigenvector
+    c2 = -sa * c[:, 0] + ca * c[:, 1]
+    q1, q2 = s1 * c1 * c1, s2 * c2 * c2
+    inside = (c1 * c1 / s1 + c2 * c2 / s2) <= kk * kk
+    target = 1.0 / kk
+    mu = np.zeros_like(a)
+    for _ in range(60):
+        x1, x2 = s1 + mu, s2 + mu
+        m = q1 / (x1 * x1) + q2 / (x2 * x2)
+        phi = 1.0 / np.sqrt(m)
+        dm = -2.0 * (q1 / x1**3 + q2 / x2**3)
+        dphi = -0.5 * dm * m**-1.5
+        step = (target - phi) / np.maximum(dphi, 1e-300)
+        step = np.where(inside, 0.0, np.maximum(step, 0.0))
+        mu = mu + step
+        if np.all(step <= 1e-15 * np.maximum(mu, 1e-300)):
+            break
+    y1 = mu * c1 / (s1 + mu)
+    y2 = mu * c2 / (s2 + mu)
+    return np.asarray(np.where(inside, 0.0, np.hypot(y1, y2)), dtype=np.float64)
+
+
+def centripetal_radii(cyl: Cylinder, points: ArrayLike, covs: ArrayLike, k: float) -> FloatArray:
+    """``r_ce = r - min distance to the axis over the k-ellipsoid`` for every point (exact Eq. 12)."""
+    return np.asarray(cyl.radius - min_axis_distance(cyl, points, covs, k), dtype=np.float64)
+
+
+def centripetal_radii_first_order(cyl: Cylinder, points: ArrayLike, covs: ArrayLike, k: float) -> FloatArray:
+    """Tangent-plane approximation ``k sqrt(n^T Sigma n)`` (``n``: radial direction at the point).
+
+    It neglects the curvature of the cylinder across the ellipsoid, so it over-estimates ``r_ce``
+    by about ``h^2 / (2 r)`` where ``h`` is the ellipsoid's extent along the surface.
+    """
+    kk = _check_k(k)
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    cv = np.asarray(covs, dtype=np.float64).reshape(-1, 3, 3)
+    rad = cyl.radial(pts)
+    n = rad / np.linalg.norm(rad, axis=1, keepdims=True)
+    return np.asarray(kk * np.sqrt(np.einsum("ni,nij,nj->n", n, cv, n)), dtype=np.float64)
+
+
+def centripetal_radius_eq12(cyl: Cylinder, point: ArrayLike, cov: ArrayLike, k: float) -> float:
+    """Eq. 12 for one point with a general constrained optimiser (SLSQP): the reference solution.
+
+    ``min |TA|`` (distance of ``T`` to the axis) subject to ``(T - E)^T Sigma^-1 (T - E) <= k^2``.
+    Solved in whitened coordinates ``T = E + L u`` (``Sigma = L L^T``) for conditioning.
+    """
+    kk = _check_k(k)
+    e = np.asarray(point, dtype=np.float64).reshape(3)
+    cv = np.asarray(cov, dtype=np.float64).reshape(3, 3)
+    w, v = np.linalg.eigh(cv)
+    lmat = v * np.sqrt(np.clip(w, 1e-300, None))
+    scale = float(np.sqrt(np.max(w)))
+
+    def dist2(u: FloatArray) -> float:
+        rad = cyl.radial(e + lmat @ u)
+        return float(rad @ rad) / scale**2
+
+    def grad(u: FloatArray) -> FloatArray:
+        rad = cyl.radial(e + lmat @ u)
+        return np.asarray(2.0 * (lmat.T @ rad) / scale**2, dtype=np.float64)
+
+    rad0 = cyl.radial(e)
+    u0 = -kk * 0.5 * (lmat.T @ rad0) / max(float(np.linalg.norm(lmat.T @ rad0)), 1e-300)
+    res = minimize(
+        dist2,
+        u0,
+        jac=grad,
+        method="SLSQP",
+        constraints=[{"type": "ineq", "fun": lambda u: kk * kk - float(u @ u), "jac": lambda u: -2.0 * u}],
+        options={"ftol": 1e-16, "maxiter": 500},
+    )
+    r_min = float(np.sqrt(max(res.fun, 0.0))) * scale
+    return cyl.radius - r_min
+
+
+def ideal_points(cyl: Cylinder, rays: Rays) -> FloatArray:
+    """Where each beam meets the cylinder (for a miss: its closest approach moved onto the surface)."""
+    t, gap = cyl.ray_range(rays.origins, rays.dirs)
+    pts = rays.origins + t[:, None] * rays.dirs
+    miss = gap > 0
+    if np.any(miss):
+        rad = cyl.radial(pts[miss])
+        pts[miss] -= rad * (gap[miss] / np.linalg.norm(rad, axis=1))[:, None]
+    return np.asarray(pts, dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class CriticalPointInterval:
+    """Seed 003's interval: ``d_min = d - 2 r_ce``, ``d_max = d + 2 r_ce`` at the critical point."""
+
+    diameter: float
+    k: float
+    percentile: float
+    r_ce: float
+    d_min: float
+    d_max: float
+    critical_index: int
+    radii: FloatArray  # centripetal radius of every point (input order)
+    points: FloatArray  # the surface points whose ellipsoids were used
+
+    @property
+    def half_width(self) -> float:
+        return 0.5 * (self.d_max - self.d_min)
+
+    def cdf(self) -> tuple[FloatArray, FloatArray]:
+        """Empirical CDF of the centripetal radii (Fig. 7): sorted radii and cumulative shares."""
+        x = np.sort(self.radii)
+        return x, np.arange(1, x.size + 1, dtype=np.float64) / x.size
+
+    def histogram(self, bins: int = 30) -> tuple[FloatArray, FloatArray]:
+        counts, edges = np.histogram(self.radii, bins=bins)
+        return counts.astype(np.float64), edges.astype(np.float64)
+
+
+def critical_point_interval(
+    cyl: Cylinder,
+    surface_points: ArrayLike | None = None,
+    *,
+    rays: Rays | None = None,
+    noise: NoiseModel | None = None,
+    k: float = 1.0,
+    p: float = kinematics.DEFAULT_P,
+    percentile: float = CRITICAL_PERCENTILE,
+) -> CriticalPointInterval:
+    """Eq. 8-12 with the seed's 25th-percentile critical point.
+
+    The ellipsoids sit on ``surface_points`` (points on ``cyl``, as in the seed's simulation), or,
+    given ``rays`` (the inliers' beams of a measurement), on the points where those beams meet the
+    fitted cylinder. Covariances come from Eq. 7 with the rig at the origin (inner parameter ``p``).
+    """
+    kk = _check_k(k)
+    if not 0 <= percentile <= 100:
+        raise LrmsError(f"percentile must be in [0, 100], got {percentile}")
+    if surface_points is not None:
+        pts = np.asarray(surface_points, dtype=np.float64).reshape(-1, 3)
+    elif rays is not None:
+        pts = ideal_points(cyl, rays)
+    else:
+        raise LrmsError("give surface_points or rays")
+    if pts.shape[0] == 0:
+        raise FitError("no points for the critical-point interval")
+    covs = covariances_of_points(pts, noise, p)
+    radii = centripetal_radii(cyl, pts, covs, kk)
+    order = np.argsort(radii, kind="stable")
+    pos = int(np.floor(percentile / 100.0 * (radii.size - 1)))
+    crit = int(order[pos])
+    r_ce = float(radii[crit])
+    d = cyl.diameter
+    return CriticalPointInterval(
+        diameter=d,
+        k=kk,
+        percentile=float(percentile),
+        r_ce=r_ce,
+        d_min=d - 2.0 * r_ce,
+        d_max=d + 2.0 * r_ce,
+        critical_index=crit,
+        radii=radii,
+        points=pts,
+    )
+
+
+@dataclass(frozen=True)
+class Interval:
+    diameter: float
+    std: float
+    low: float
+    high: float
+    coverage: float
+
+
+def gum_interval(fit: CylinderFit, coverage_factor: float = 2.0) -> Interval:
+    """GUM: ``d +- k u(d)`` with ``u(d) = 2 sqrt(var r)`` from the fit's covariance."""
+    u = fit.std_diameter
+    d = fit.diameter
+    from scipy.stats import norm
+
+    cov = float(2 * norm.cdf(coverage_factor) - 1)
+    return Interval(diameter=d, std=u, low=d - coverage_factor * u, high=d + coverage_factor * u, coverage=cov)
+
+
+@dataclass(frozen=True)
+class MonteCarloResult(Interval):
+    diameters: FloatArray
+    n_failed: int
+
+
+BatchResiduals = Callable[[FloatArray, NDArray[np.intp]], FloatArray]
+
+
+def batched_levenberg_marquardt(
+    fun: BatchResiduals, jfun: BatchResiduals, theta0: FloatArray, max_iter: int = 30, tol: float = 1e-7
+) -> FloatArray:
+    """Levenberg-Marquardt on many independent least-squares problems at once.
+
+    ``fun(theta, idx)``: ``(len(idx), m)`` residuals of problems ``idx`` at ``theta``
+    ``(len(idx), n)``; ``jfun(theta, idx)``: ``(len(idx), m, n)``. Each problem keeps its own
+    damping, a step is taken only where it lowers that problem's cost, and finished problems drop
+    out of the batch. A problem stops when its step is below ``tol`` (rad / m) or its cost
+    stalls. Problems whose normal matrix is singular end as nan.
+    """
+    theta = np.array(theta0, dtype=np.float64)
+    n_prob = theta.shape[0]
+    idx = np.arange(n_prob)
+    r = fun(theta, idx)
+    cost = np.sum(r * r, axis=-1)
+    lam = np.full(n_prob, 1e-4)
+    eye = np.eye(theta.shape[-1])
+    active = idx
+    for _ in range(max_iter):
+        if active.size == 0:
+            break
+        th, ra = theta[active], r[active]
+        jac = jfun(th, active)
+        jac_t = np.swapaxes(jac, -1, -2)
+        jtj = jac_t @ jac
+        g = (jac_t @ ra[..., None])[..., 0]
+        diag = np.einsum("rii->ri", jtj)
+        damped = jtj + lam[active, None, None] * (diag[:, :, None] * eye)
+        ok = np.abs(np.linalg.det(damped)) > 0
+        delta = np.zeros_like(th)
+        delta[ok] = -np.linalg.solve(damped[ok], g[ok][..., None])[..., 0]
+        theta[active[~ok]] = np.nan
+        new = th + delta
+        rn = fun(new, active)
+        cn = np.sum(rn * rn, axis=-1)
+        acc = (cn <= cost[active]) & ok
+        flat = acc & (cost[active] - cn <= 1e-10 * cost[active])
+        theta[active[acc]] = new[acc]
+        r[active[acc]] = rn[acc]
+        cost[active[acc]] = cn[acc]
+        lam[active] = np.where(acc, lam[active] * 0.3, lam[active] * 10.0)
+        small = np.max(np.abs(delta), axis=-1) < tol
+        finished = ~ok | (acc & (small | flat)) | (lam[active] > 1e12)
+        active = active[~finished]
+    return theta
+
+
+def _replica_problem(
+    frame: _Frame, pts: FloatArray, line_of_sight: bool, nm: NoiseModel, p: float
+) -> tuple[BatchResiduals, BatchResiduals]:
+    """Residual and Jacobian functions of replicas ``pts`` ``(R, M, 3)`` for the batched solver."""
+    if line_of_sight:
+        l_, al, be = kinematics.inverse(pts, p)
+        o, d = kinematics.beam_rays(al, be, p)
+        sig_l = np.full(pts.shape[1], nm.sigma_l)
+        sig_p = np.maximum(np.hypot(l_ * nm.sigma_alpha, (l_ * np.sin(al) + p) * nm.sigma_beta), 1e-7)
+
+        def fun(th: FloatArray, i: NDArray[np.intp]) -> FloatArray:
+            return los_residuals(th, frame, o[i], d[i], l_[i], sig_l, sig_p[i])
+
+        def jfun(th: FloatArray, i: NDArray[np.intp]) -> FloatArray:
+            return los_jacobian(th, frame, o[i], d[i], sig_l, sig_p[i])
+
+        return fun, jfun
+    one = np.asarray(1.0)
+
+    def ofun(th: FloatArray, i: NDArray[np.intp]) -> FloatArray:
+        return orthogonal_residuals(th, frame, pts[i], one)
+
+    def ojfun(th: FloatArray, i: NDArray[np.intp]) -> FloatArray:
+        return orthogonal_jacobian(th, frame, pts[i], one)
+
+    return ofun, ojfun
+
+
+def monte_carlo_interval(
+    fit: CylinderFit,
+    rays: Rays,
+    *,
+    noise: NoiseModel | None = None,
+    n: int = 200,
+    coverage: float = 0.95,
+    p: float = kinematics.DEFAULT_P,
+    rng: np.random.Generator | None = None,
+    iterations: int = 15,
+) -> MonteCarloResult:
+    """GUM-S1 interval: re-simulate the inliers' beams from the fitted cylinder, refit, quantiles.
+
+    ``rays`` are the beams of the fit's inliers (``rays.subset(fit.inliers)``). For an
+    orthogonal-distance fit the replicas are refitted with orthogonal distances too, so the
+    interval describes that estimator.
+    """
+    if n < 10:
+        raise LrmsError(f"Monte Carlo needs at least 10 replicas, got {n}")
+    if not 0 < coverage < 1:
+        raise LrmsError(f"coverage must be in (0, 1), got {coverage}")
+    nm = noise if noise is not None else NoiseModel()
+    g = rng if rng is not None else np.random.default_rng()
+    cyl = fit.cylinder
+    truth = ideal_points(cyl, rays)
+    l0, a0, b0 = kinematics.inverse(truth, p)
+    frame = _Frame.at(cyl)
+    m_pts = truth.shape[0]
+    chunk = max(1, int(1_500_000 // (10 * max(m_pts, 1))))
+    out = np.empty(n)
+    for s in range(0, n, chunk):
+        rep = min(chunk, n - s)
+        ln, an, bn = nm.perturb(
+            np.broadcast_to(l0, (rep, m_pts)), np.broadcast_to(a0, (rep, m_pts)), np.broadcast_to(b0, (rep, m_pts)), g
+        )
+        pts = kinematics.forward(ln, an, bn, p)  # (rep, M, 3)
+        fun, jfun = _replica_problem(frame, pts, fit.line_of_sight, nm, p)
+        theta = batched_levenberg_marquardt(fun, jfun, np.zeros((rep, 5)), max_iter=iterations)
+        out[s : s + rep] = 2.0 * theta[:, 4] + 2.0 * cyl.radius
+    ok = np.isfinite(out)
+    if np.count_nonzero(ok) < 10:
+        raise FitError("Monte Carlo refits failed")
+    good = out[ok]
+    lo, hi = np.quantile(good, [(1 - coverage) / 2, (1 + coverage) / 2])
+    return MonteCarloResult(
+        diameter=fit.diameter,
+        std=float(np.std(good, ddof=1)),
+        low=float(lo),
+        high=float(hi),
+        coverage=coverage,
+        diameters=good,
+        n_failed=int(np.count_nonzero(~ok)),
+    )
