@@ -39,7 +39,7 @@ import serial
 
 from drivers.errors import DeviceConnectionError, DeviceTimeoutError, DeviceURLError
 from drivers.servo import cia402
-from drivers.servo.interface import Cia402Motor, DriveConfig, FaultInfo, MotorSample, ServoError
+from drivers.servo.interface import Cia402Motor, DriveConfig, FaultInfo, MotorFault, MotorSample, ServoError
 from drivers.servo.modbus_map import ModbusMapError, RegisterEntry, RegisterMap, default_map, load_map
 from drivers.servo.modbus_rtu import (
     MAX_FRAME,
@@ -236,7 +236,7 @@ class ModbusRtuClient:
             remaining = deadline - self.clock()
             if remaining <= 0:
                 self._last_activity = self.clock()
-                what = "the rest of the reply" if buf else "a reply"
+                what = "complete reply" if buf else "reply"
                 raise ModbusTimeoutError(
                     f"unit {self.unit} on {self.port.name}: no {what} to function 0x{request.function:02X} "
                     f"within {self.timeout * 1e3:.0f} ms ({len(buf)} byte(s) received)"
@@ -337,7 +337,12 @@ class ModbusMotor(Cia402Motor):
     def fault(self) -> FaultInfo | None:
         if self._host_fault is not None:
             return self._host_fault
-        sw = self._fresh_statusword()
+        try:
+            sw = self._fresh_statusword()
+        except MotorFault:
+            if self._host_fault is not None:  # the link was declared lost while we waited
+                return self._host_fault
+            raise
         if cia402.decode_state(sw) not in (cia402.State.FAULT, cia402.State.FAULT_REACTION_ACTIVE):
             return None
         code = self._read_object(cia402.ERROR_CODE)
