@@ -22,6 +22,7 @@ import threading
 import time
 from types import TracebackType
 from typing import Any
+from urllib.parse import urlencode
 
 from drivers.errors import DeviceURLError
 from drivers.lms100 import (
@@ -37,6 +38,7 @@ from drivers.lms100 import (
     message_classes,
 )
 from drivers.url import DeviceURL
+from lrms.errors import LrmsError
 from sim.scanner.device import (
     SFA_BUFFER_UNDERFLOW,
     SFA_COLA_A_INVALID_CHARACTER,
@@ -303,13 +305,21 @@ class ScannerServer:
             next_index = index + 1
 
 
+_SIM_URL_OPTIONS = ("cola", "scene", "realtime", "time_scale", "seed")
+
+
 def open_url(url: DeviceURL, **kw: Any) -> Any:
     """``sim://?cola=b&scene=seed003&realtime=0``: an embedded simulated scanner plus a connected client.
 
-    URL options: ``cola`` (a|b, default b), ``scene`` (default seed003), ``realtime`` (default 1),
-    ``time_scale`` (default 1), ``seed`` (default 0). Keyword arguments ``calibration``,
-    ``motor_angle_at``, ``sensor`` go to :class:`SimulatedLMS100`; all others to the client's
-    ``open_url``. The server stops when the client is closed.
+    Simulator options: ``cola`` (a|b, default b), ``scene`` (default seed003), ``realtime``
+    (default 1), ``time_scale`` (default 1), ``seed`` (default 0). Every other option
+    (``timeout``, ``reconnect``, ``queue``...) goes to the LMS100 client's ``tcp://`` URL, which
+    rejects unknown ones. Keyword arguments ``calibration``, ``motor_angle_at``, ``sensor`` go to
+    :class:`SimulatedLMS100`, all others to :func:`drivers.lms100.client.open_url`.
+
+    Returns the :class:`drivers.lms100.client.ScannerClient`, connected over real TCP to a
+    :class:`ScannerServer` on 127.0.0.1 (ephemeral port); ``client.sim_server`` is that server and
+    ``client.close()`` stops it too.
     """
     from drivers.lms100 import client as lms_client
 
@@ -320,17 +330,17 @@ def open_url(url: DeviceURL, **kw: Any) -> Any:
     realtime = url.get_bool("realtime", True)
     time_scale = url.get_float("time_scale", 1.0, lo=1e-3, hi=1e6)
     seed = url.get_int("seed", 0, lo=0)
-    url.check_all_used()
+    forward = {k: v for k, v in url.query.items() if k not in _SIM_URL_OPTIONS}
     device_kw = {k: kw.pop(k) for k in ("calibration", "motor_angle_at", "sensor") if k in kw}
     try:
         device = SimulatedLMS100(scene, seed=seed, realtime=realtime, time_scale=time_scale, **device_kw)
-    except Exception as exc:  # scene names and parameters: report as a URL problem
-        if isinstance(exc, (SimulatorError, ValueError)):
-            raise DeviceURLError(f"{url.raw!r}: {exc}") from None
-        raise
+    except LrmsError as exc:  # unknown scene name
+        raise DeviceURLError(f"{url.raw!r}: {exc}") from None
     server = ScannerServer(device, dialect=cola).start()
     try:
-        client = lms_client.open_url(DeviceURL.parse(server.url), **kw)
+        host, port = server.address
+        query = urlencode({"cola": cola, **forward})
+        client = lms_client.open_url(DeviceURL.parse(f"tcp://{host}:{port}?{query}"), **kw)
     except BaseException:
         server.stop()
         raise
@@ -339,12 +349,12 @@ def open_url(url: DeviceURL, **kw: Any) -> Any:
 
 
 def _close_with(client: Any, server: ScannerServer) -> None:
-    """Make ``client.close()`` also stop the embedded server."""
+    """Make ``client.close()`` (and so its context manager) also stop the embedded server."""
     original = client.close
 
-    def close(*args: Any, **kwargs: Any) -> Any:
+    def close() -> None:
         try:
-            return original(*args, **kwargs)
+            original()
         finally:
             server.stop()
 
