@@ -1,0 +1,185 @@
+"""One simulated rig on one clock: a simulated LMS100 on a simulated tilt drive.
+
+The drive (:class:`sim.drive.model.SimDrive`) and the scanner (:class:`SimulatedLMS100`) both run
+on the host's monotonic clock (system-wide on Linux, so other processes share it). The scanner
+ray-casts every beam with the drive's shaft angle *at that beam's instant*: a recorder thread
+samples the drive's actual position every ``history_period_s`` (advancing its physics to that
+instant first), and the scanner's ``motor_angle_at`` interpolates that history at the beam
+times (device clock -> host monotonic time via the scanner's own clock), bringing the history
+up to the present first. So the scan plane keeps turning while a scan is taken, as on the rig.
+
+Both devices are served over real transports: the scanner over TCP on 127.0.0.1 (CoLa A or B),
+the drive as a CANopen node on a socketcand server on 127.0.0.1 (or a python-can ``virtual``
+channel in this process). :attr:`SimulatedRig.scanner_url` and :attr:`SimulatedRig.motor_url`
+are what a client opens (:func:`drivers.url.open_device`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from drivers.servo import cia402
+from drivers.servo.interface import DriveConfig
+from lrms.kinematics import RigCalibration
+from sim.drive.model import SimDrive
+from sim.scanner.device import SimulatedLMS100
+from sim.scanner.server import ScannerServer
+from sim.scene import Scene, SensorModel
+
+FloatArray = NDArray[np.float64]
+_channels = itertools.count(1)
+
+
+class PositionHistory:
+    """Timestamped shaft angles of a :class:`SimDrive` (host monotonic s, output-shaft rad)."""
+
+    def __init__(self, drive: SimDrive, config: DriveConfig, capacity: int = 1 << 16) -> None:
+        self.drive = drive
+        self.config = config
+        self._cap = capacity
+        self._t = np.zeros(capacity)
+        self._a = np.zeros(capacity)
+        self._n = 0
+        self._lock = threading.Lock()
+
+    def sample(self) -> None:
+        """Advance the drive's physics to now and record its actual position."""
+        with self.drive.lock:
+            t = self.drive.clock()
+            counts = self.drive.read(cia402.POSITION_ACTUAL)
+        angle = self.config.counts_to_rad(counts)
+        with self._lock:
+            if self._n and t <= self._t[(self._n - 1) % self._cap]:
+                return
+            i = self._n % self._cap
+            self._t[i] = t
+            self._a[i] = angle
+            self._n += 1
+
+    def arrays(self) -> tuple[FloatArray, FloatArray]:
+        with self._lock:
+            n = min(self._n, self._cap)
+            order = np.arange(self._n - n, self._n) % self._cap
+            return self._t[order].copy(), self._a[order].copy()
+
+    def angle_at(self, t_host: ArrayLike) -> FloatArray:
+        """Shaft angle at host monotonic times (linear between samples, held at the ends)."""
+        self.sample()
+        t, a = self.arrays()
+        return np.interp(np.asarray(t_host, dtype=np.float64), t, a)
+
+
+class SimulatedRig:
+    """The simulated scanner and drive of one rig, served on 127.0.0.1 (see the module docstring)."""
+
+    def __init__(
+        self,
+        scene: Scene | str = "seed003",
+        calibration: RigCalibration | None = None,
+        sensor: SensorModel | None = None,
+        *,
+        seed: int = 0,
+        cola: str = "b",
+        can: str = "socketcand",
+        node: int = 1,
+        drive_config: DriveConfig | None = None,
+        history_period_s: float = 0.002,
+    ) -> None:
+        if can not in ("socketcand", "virtual"):
+            raise ValueError(f"can must be 'socketcand' or 'virtual', got {can!r}")
+        self.calibration = calibration if calibration is not None else RigCalibration()
+        self.drive_config = drive_config if drive_config is not None else DriveConfig()
+        self.drive = SimDrive(node, clock=time.monotonic)
+        self.history = PositionHistory(self.drive, self.drive_config)
+        self.history.sample()
+        self._stop = threading.Event()
+        self._period = history_period_s
+        self._recorder = threading.Thread(target=self._record, name="sim-rig-history", daemon=True)
+        self._recorder.start()
+        self._closers: list[Callable[[], None]] = [self._stop_recorder]
+        try:
+            self.scanner = SimulatedLMS100(
+                scene, self.calibration, motor_angle_at=self._motor_angle_at, sensor=sensor, seed=seed, realtime=True
+            )
+            self.scanner_server = ScannerServer(self.scanner, dialect=cola).start()
+            self._closers.append(self.scanner_server.stop)
+            self.can_kind = can
+            if can == "socketcand":
+                from sim.drive.socketcand import SimulatedCanDrive
+
+                self.can_drive: Any = SimulatedCanDrive(node=node, drive=self.drive)
+                self._closers.append(self.can_drive.close)
+                self.motor_url = self.can_drive.url
+            else:
+                import can as pycan
+
+                from sim.drive.can_node import SimCanNode
+
+                channel = f"lrms-sim-rig-{next(_channels)}-{id(self):x}"
+                bus = pycan.Bus(interface="virtual", channel=channel)
+                node_obj = SimCanNode(bus, self.drive, node_id=node).start()
+
+                def stop_node() -> None:
+                    node_obj.stop()
+                    bus.shutdown()
+
+                self._closers.append(stop_node)
+                self.can_drive = node_obj
+                self.motor_url = f"canopen+virtual://{channel}?node={node}"
+        except BaseException:
+            self.close()
+            raise
+        self.scanner_url = self.scanner_server.url
+
+    # -- one clock ------------------------------------------------------------------------
+    def _motor_angle_at(self, device_times_s: NDArray[np.float64]) -> FloatArray:
+        clock = self.scanner.clock
+        if not clock.realtime:
+            raise ValueError("the simulated rig needs a real-time scanner clock")
+        host = clock.monotonic_at(0) + np.asarray(device_times_s, dtype=np.float64) / clock.time_scale
+        return self.history.angle_at(host)
+
+    def _record(self) -> None:
+        while not self._stop.wait(self._period):
+            self.history.sample()
+
+    def _stop_recorder(self) -> None:
+        self._stop.set()
+        self._recorder.join(2.0)
+
+    # -- faults ---------------------------------------------------------------------------
+    def inject_motor_fault(self, kind: str = "following_error") -> None:
+        """``following_error`` (the axis stalls), ``over_current`` or ``heartbeat_loss``."""
+        self.drive.inject_fault(kind)
+
+    def drop_scanner_connections(self) -> int:
+        """Cut every scanner client's TCP connection (as a cable pull would)."""
+        return self.scanner_server.drop_clients()
+
+    def describe(self) -> dict[str, Any]:
+        return {
+            "scene": self.scanner.scene.name,
+            "scanner_url": self.scanner_url,
+            "motor_url": self.motor_url,
+            "can": self.can_kind,
+        }
+
+    def close(self) -> None:
+        while self._closers:
+            closer = self._closers.pop()
+            with contextlib.suppress(Exception):  # best effort: close everything else too
+                closer()
+
+    def __enter__(self) -> SimulatedRig:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
