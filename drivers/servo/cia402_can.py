@@ -118,7 +118,7 @@ def bus_kwargs(url: DeviceURL) -> dict[str, Any]:
             raise DriverError(
                 f"socketcand URL needs host:port, e.g. canopen+socketcand://127.0.0.1:29536/can0: {url.raw!r}"
             )
-        kwargs.update(host=url.host, port=url.port, channel=path or "can0")
+        kwargs.update(host=url.host, port=url.port, channel=path or "can0", tcp_tune=True)
     else:
         channel = netloc or path
         if not channel:
