@@ -111,6 +111,7 @@ SFA_WRITE_ACCESS_DENIED = 0x0A
 SFA_UNKNOWN_COLA_COMMAND = 0x0C
 SFA_UNKNOWN_EVENT = 0x0F
 SFA_COLA_A_INVALID_CHARACTER = 0x11
+SFA_INTERNAL = 0x14
 
 #: Accepted (scan frequency 1/100 Hz, angular resolution 1/10000 deg) pairs of an LMS1xx.
 ALLOWED_SCAN_CONFIGS = frozenset({(2500, 2500), (2500, 5000), (5000, 5000)})
@@ -118,7 +119,6 @@ FIELD_START = -450000  # 1/10000 deg
 FIELD_STOP = 2250000
 #: The scan is handed to the interface this long after its last beam (us).
 TRANSMIT_DELAY_US = 1000
-#: Shots per second of the LMS1xx mirror head (720 x 50 Hz or 1440 x 25 Hz).
 U32 = 1 << 32
 
 MotorAngleFn = Callable[[np.ndarray], np.ndarray]
@@ -269,6 +269,7 @@ class SimulatedLMS100:
         self.config = self._saved.copy()
         self.measuring = True
         self.config_mode = False
+        self._config_owner: Session | None = None
         self.telegram_counter = 0
         self._busy_until_us = -1
         self._scan_cache: OrderedDict[int, Scan] = OrderedDict()
@@ -313,6 +314,9 @@ class SimulatedLMS100:
         with self.lock:
             if session in self.sessions:
                 self.sessions.remove(session)
+            if self._config_owner is session:  # its connection is gone: leave configuration mode
+                self.config_mode = False
+                self._config_owner = None
             self.changed.notify_all()
 
     def busy(self) -> bool:
@@ -486,10 +490,12 @@ class SimulatedLMS100:
                 return [SetAccessModeReply(False)]
             session.access_level = int(level)
             self.config_mode = True
+            self._config_owner = session
             return [SetAccessModeReply(True)]
         if isinstance(msg, Run):
             session.access_level = 0
             self.config_mode = False
+            self._config_owner = None
             return [RunReply(True)]
         if isinstance(msg, ReadScanConfig):
             return [ScanConfig(c.scan_frequency, 1, c.angular_resolution, c.start_angle, c.stop_angle)]

@@ -42,6 +42,7 @@ from lrms.errors import LrmsError
 from sim.scanner.device import (
     SFA_BUFFER_UNDERFLOW,
     SFA_COLA_A_INVALID_CHARACTER,
+    SFA_INTERNAL,
     SFA_UNKNOWN_COLA_COMMAND,
     Session,
     SimulatedLMS100,
@@ -241,7 +242,11 @@ class ScannerServer:
             return [ErrorReply(self._decode_error_code(payload))]
         if msg.kind not in _REQUEST_KINDS:
             return [ErrorReply(SFA_UNKNOWN_COLA_COMMAND)]
-        return self.device.handle(session, msg)
+        try:
+            return self.device.handle(session, msg)
+        except Exception:  # a bug or a failing motor_angle_at callback: the device reports an internal error
+            log.exception("simulated LMS100 failed on %s %s", msg.kind, msg.name)
+            return [ErrorReply(SFA_INTERNAL)]
 
     def _decode_error_code(self, payload: bytes) -> int:
         """sFA code for a telegram that could not be parsed (what an LMS1xx answers, as far as known)."""
@@ -291,9 +296,10 @@ class ScannerServer:
                     continue
             try:
                 scan = dev.stamp(dev.make_scan(index))
-            except SimulatorError as exc:
-                log.warning("simulated scan %d failed: %s", index, exc)
+            except Exception:  # keep serving; the scan counter will show the scans that were not sent
+                log.exception("simulated scan %d failed", index)
                 next_index = None
+                self._stop.wait(0.1)
                 continue
             self.scans_sent += 1
             event: list[Message] = [ScanDataEvent(scan)]

@@ -384,3 +384,23 @@ def test_bad_server_and_device_arguments() -> None:
         SimulatedLMS100("empty", time_scale=0.0)
     with pytest.raises(SimulatorError):
         SimulatedLMS100("empty", serial_number=-1)
+
+
+def test_a_login_left_open_ends_with_its_connection(fast_server: ScannerServer, connect: Connect) -> None:
+    admin = connect(fast_server.address)
+    login(admin)
+    watcher = connect(fast_server.address)
+    watcher.request(SubscribeScanData(True))
+    assert isinstance(watcher.request(ReadDeviceState()), DeviceState) and watcher.events == []  # paused
+    admin.close()  # never sent Run
+    assert len(watcher.scans(3)) == 3
+
+
+def test_a_failing_motor_callback_is_an_internal_error_not_a_dead_server(connect: Connect) -> None:
+    def broken(t: np.ndarray) -> np.ndarray:
+        raise RuntimeError("encoder unplugged")
+
+    with ScannerServer(SimulatedLMS100("wall", motor_angle_at=broken, realtime=False)) as srv:
+        link = connect(srv.address)
+        assert link.request(PollScan()) == ErrorReply(0x14)
+        assert link.request(ReadDeviceIdent()) == DeviceIdent("LMS10x_FieldEval", "V1.36-21.10.2010")
