@@ -22,7 +22,8 @@ Options: ``baud`` (default 115200), ``parity`` N/E/O (default E, the Modbus defa
 ``stopbits`` 1/2, ``unit`` 1..247 (default 1), ``map`` (TOML register map replacing the default),
 ``word_order`` high_first/low_first (overrides the map's), ``timeout`` response timeout in s (default
 0.1), ``retries`` (default 2), ``poll_hz`` (default 200, 0 = no polling), ``counts_per_rev`` and
-``gear_ratio`` (override the :class:`DriveConfig` passed as ``config=``).
+``gear_ratio`` (override the ``config=`` keyword: a :class:`DriveConfig` or a dict / TOML table for
+:meth:`DriveConfig.from_dict`).
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ import contextlib
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -455,7 +456,7 @@ def _port_url(url: DeviceURL) -> str:
     return f"{_SUB_SCHEMES[sub]}://{url.host}:{url.port}"
 
 
-def open_url(url: DeviceURL | str, *, config: DriveConfig | None = None, clock: Clock | None = None,
+def open_url(url: DeviceURL | str, *, config: DriveConfig | Mapping[str, Any] | None = None, clock: Clock | None = None,
              **kwargs: Any) -> ModbusMotor:  # fmt: skip
     """Open a Modbus RTU servo drive from its URL (see the module docstring for the options)."""
     if kwargs:
@@ -471,7 +472,7 @@ def open_url(url: DeviceURL | str, *, config: DriveConfig | None = None, clock: 
     poll_hz = u.get_float("poll_hz", 200.0, lo=0.0, hi=2000.0)
     map_path = u.get_str("map", "")
     word_order = u.get_str("word_order", "", choices=("", "high_first", "low_first"))
-    cfg = config or DriveConfig()
+    cfg = config if isinstance(config, DriveConfig) else DriveConfig.from_dict(config or {})
     overrides: dict[str, Any] = {}
     if u.has("counts_per_rev"):
         overrides["counts_per_rev"] = u.get_int("counts_per_rev", lo=1)
