@@ -1,18 +1,23 @@
-"""Ray-cast throughput of the simulated scene against the LMS1xx's own beam rate.
+"""Ray-cast throughput of the simulated scene, and of the simulated LMS100 server, against the sensor.
 
 Run: ``.venv/bin/python bench/bench_raycast.py``. Prints rays/s for one 1081-beam scan
 (0.25 deg, 25 Hz: 27,025 reported beams/s) against the ``seed003`` scene, with and without the
-sensor's noise, and for a sweep of 100 scans cast at once, as multiples of the sensor's rate.
+sensor's noise, and for a sweep of 100 scans cast at once, as multiples of the sensor's rate;
+then scans/s streamed by the simulated device in fast mode over loopback TCP (CoLa A and B),
+read by a plain-socket client with the codec, as multiples of 25 scans/s.
 """
 
 from __future__ import annotations
 
+import socket
 import time
 from collections.abc import Callable
 
 import numpy as np
 
+from drivers.lms100 import CoLaConnection, ScanDataEvent, SubscribeScanData
 from lrms.kinematics import RigCalibration
+from sim.scanner import ScannerServer, SimulatedLMS100
 from sim.scene import SensorModel, TorusSection, cast_beams, get_scene, lms1xx_device_angles
 
 SENSOR_BEAMS_PER_S = 1081 * 25.0
@@ -49,6 +54,30 @@ def main() -> None:
     for name, fn, n in cases:
         rate = _rate(fn, n)
         print(f"{name:45s} {rate:12,.0f} rays/s  = {rate / SENSOR_BEAMS_PER_S:7.1f} x real time")
+    for cola in ("a", "b"):
+        rate = _server_rate(cola, scans=400)
+        name = f"simulated LMS100 server, fast mode, CoLa {cola.upper()}"
+        print(f"{name:45s} {rate:12,.1f} scans/s = {rate / 25:7.1f} x 25 Hz")
+
+
+def _server_rate(cola: str, scans: int) -> float:
+    """Scans per second a subscribed client receives from the fast (virtual-clock) device."""
+    with ScannerServer(SimulatedLMS100("seed003", realtime=False), dialect=cola) as server:
+        sock = socket.create_connection(server.address)
+        conn = CoLaConnection(cola, role="client")
+        sock.sendall(conn.send(SubscribeScanData(True)))
+        received, start = 0, 0.0
+        while received < scans:
+            msg = conn.next_message()
+            if msg is None:
+                conn.receive_data(sock.recv(1 << 16))
+            elif isinstance(msg, ScanDataEvent):
+                received += 1
+                if received == 20:  # start the clock after the first scans (thread start-up)
+                    start = time.perf_counter()
+        elapsed = time.perf_counter() - start
+        sock.close()
+        return (scans - 20) / elapsed
 
 
 if __name__ == "__main__":
