@@ -469,6 +469,15 @@ class ScannerClient:
         return self.scans()
 
     # -- requests -------------------------------------------------------------------------------
+    def request(self, msg: Message, reply_cls: type[R], timeout: float | None = None) -> R:
+        """Send any request telegram of :mod:`drivers.lms100.messages` and return its reply as
+        ``reply_cls`` (e.g. ``request(ReadOutputRange(), OutputRange)``); ``sFA`` raises
+        :class:`DeviceErrorReply`, silence :class:`DeviceTimeoutError`. The session restore after a
+        reconnect does not know about telegrams sent this way."""
+        if not msg.is_request:
+            raise CoLaError(f"{msg.kind} {msg.name} is not a request")
+        return self._request(msg, reply_cls, timeout)
+
     def _request(self, msg: Message, reply_cls: type[R], timeout: float | None = None, link: _Link | None = None) -> R:
         """Send ``msg`` and wait for its reply. ``link`` is given by the session restore only."""
         limit = self.timeout_s if timeout is None else timeout
@@ -540,8 +549,7 @@ class ScannerClient:
     def _check_login(self, reply: SetAccessModeReply, msg: SetAccessMode) -> None:
         if not reply.success:
             raise LoginError(
-                f"{self.address} refused SetAccessMode level {msg.level} with password hash "
-                f"0x{msg.password_hash:08X}"
+                f"{self.address} refused SetAccessMode level {msg.level} with password hash 0x{msg.password_hash:08X}"
             )
 
     def _update_session(self, **changes: Any) -> None:
@@ -624,7 +632,9 @@ class ScannerClient:
         report = self._gaps.update(scan.scan_counter, scan.time_since_startup_us, period_us, self._output_rate)
         if report.restart:
             self._stats.add("device_restarts")
-            log.warning("%s: device clock went backwards (device restarted?); scan counters start afresh", self.address)
+            log.warning(
+                "%s: scan counter or device clock reset (device restarted?); counting starts afresh", self.address
+            )
         if report.duplicate:
             self._stats.add("duplicates")
             log.warning("%s: repeated scan (scan counter %d) skipped", self.address, scan.scan_counter)

@@ -89,8 +89,9 @@ class GapTracker:
     scan is sent). A counter that advanced by ``d`` (modulo 2**16) means ``d // step - 1`` scans
     were lost. Because the counter wraps after 65536 scans (22 min at 50 Hz), a long outage is
     resolved with the device's microsecond clock: the number of whole counter wraps that fit the
-    elapsed device time is added. A device clock that runs backwards means the device restarted;
-    that is reported as a restart and the sequence starts afresh.
+    elapsed device time is added. A device clock that runs backwards, or a counter that advanced
+    further than the elapsed device time allows, means the device restarted (counters reset);
+    that is reported as a restart, not as lost scans, and the sequence starts afresh.
     """
 
     def __init__(self) -> None:
@@ -113,8 +114,11 @@ class GapTracker:
         if delta == 0 and dt == 0:
             return GapReport(duplicate=True)
         if scan_period_us and scan_period_us > 0:
+            expected = dt / scan_period_us  # scans the device clock allows between the two
+            if delta > 1.5 * expected + 2:
+                # more scans than time allows: the counters were reset (device restart)
+                return GapReport(restart=True)
             # whole counter wraps hidden in a long outage, judged from the device clock
-            expected = dt / scan_period_us
             wraps = round((expected - delta) / COUNTER_MODULO)
             if wraps > 0:
                 delta += wraps * COUNTER_MODULO
