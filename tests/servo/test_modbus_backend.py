@@ -212,7 +212,7 @@ def test_a_silent_drive_becomes_a_fault_and_recovers(motor: ModbusMotor, server:
 @pytest.fixture
 def quiet_motor(server: ModbusDriveServer) -> Iterator[ModbusMotor]:
     """A motor without the poll thread, so that every transaction is the test's own."""
-    m = open_url(server.url + "&timeout=0.03&retries=2&poll_hz=0", config=CONFIG)
+    m = open_url(server.url + "&timeout=0.25&retries=2&poll_hz=0", config=CONFIG)
     try:
         yield m
     finally:
@@ -222,9 +222,11 @@ def quiet_motor(server: ModbusDriveServer) -> Iterator[ModbusMotor]:
 def test_silent_slave_times_out_after_the_retries(quiet_motor: ModbusMotor, server: ModbusDriveServer) -> None:
     server.silent = True
     before = server.stats.ignored_silent
+    quiet_motor.client.timeout = 0.03
     with pytest.raises(ModbusTimeoutError, match="after 3 attempts") as exc:
         quiet_motor._read_object(cia402.STATUSWORD)
     assert isinstance(exc.value, DeviceTimeoutError) and isinstance(exc.value, DriverError)
+    wait_for(lambda: server.stats.ignored_silent - before >= 3)
     assert server.stats.ignored_silent - before == 3  # the request really went out three times
     assert quiet_motor.client.stats.timeouts == 3
     assert quiet_motor.client.stats.failures == 1
@@ -283,7 +285,7 @@ def test_wrong_unit_gets_no_answer_and_broadcast_writes_apply(server: ModbusDriv
         other = ModbusRtuClient(port, unit=2, timeout=0.03, retries=0)
         with pytest.raises(ModbusTimeoutError):
             other.read_registers(0x6410, 1)
-        assert server.stats.other_unit == 1
+        wait_for(lambda: server.stats.other_unit == 1)
         broadcast = ModbusRtuClient(port, unit=0, timeout=0.03, retries=0)
         broadcast.write_register(0x6400, cia402.CMD_SHUTDOWN)
         wait_for(lambda: server.stats.broadcasts == 1)
