@@ -456,3 +456,31 @@ class Cia402CanMotor(Cia402Motor):
             log.warning("node %d: disconnect: %s", self.node_id, exc)
         if self.on_close is not None:
             self.on_close()
+
+
+def canopen_object_dictionary() -> canopen.ObjectDictionary:
+    """A ``canopen`` object dictionary of every object in :data:`cia402.OBJECTS`, for masters
+    built on the ``canopen`` library (e.g. ``canopen.profiles.p402.BaseNode402``)."""
+    from canopen.objectdictionary import ODRecord, ODVariable
+
+    od = canopen.ObjectDictionary()
+    by_index: dict[int, list[cia402.ObjectSpec]] = {}
+    for spec in cia402.OBJECTS.values():
+        by_index.setdefault(spec.index, []).append(spec)
+
+    def variable(spec: cia402.ObjectSpec) -> ODVariable:
+        var = ODVariable(spec.name, spec.index, spec.subindex)
+        var.data_type = spec.dtype.code
+        var.access_type = spec.access.value
+        var.default = spec.default
+        return var
+
+    for index, specs in sorted(by_index.items()):
+        if len(specs) == 1 and specs[0].subindex == 0:
+            od.add_object(variable(specs[0]))
+            continue
+        record = ODRecord(specs[0].name.split(":")[0], index)
+        for spec in sorted(specs, key=lambda s: s.subindex):
+            record.add_member(variable(spec))
+        od.add_object(record)
+    return od
