@@ -40,10 +40,11 @@ from dataclasses import dataclass, replace
 from typing import Any, TypeVar
 
 from drivers.errors import DeviceConnectionError, DeviceTimeoutError, DeviceURLError, DriverError
-from drivers.lms100.errors import CoLaError, DeviceErrorReply
-from drivers.lms100.framing import Dialect
+from drivers.lms100.errors import CoLaError, DeviceErrorReply, TelegramError
+from drivers.lms100.framing import Dialect, frame
 from drivers.lms100.messages import (
     PASSWORD_HASHES,
+    REPLY_KINDS,
     AccessLevel,
     DeviceIdent,
     DeviceReady,
@@ -78,6 +79,7 @@ from drivers.lms100.messages import (
     SubscribeScanDataReply,
     WriteScanDataConfig,
     WriteScanDataConfigReply,
+    decode_payload,
     is_reply_to,
 )
 from drivers.lms100.protocol import CoLaConnection
@@ -92,6 +94,7 @@ __all__ = [
     "LoginError",
     "MeasurementError",
     "ScanConfigError",
+    "ScanRecord",
     "ScannerClient",
     "ScannerStateError",
     "ScannerStats",
@@ -127,6 +130,17 @@ class MeasurementError(CoLaError):
 
 class ScannerStateError(DriverError):
     """The client is not in a state for this call (closed, not connected, not streaming)."""
+
+
+@dataclass(frozen=True)
+class ScanRecord:
+    """A streamed scan with what the host knows about its arrival."""
+
+    scan: Scan
+    host_time_s: float
+    """``time.monotonic()`` when the bytes completing the telegram were received."""
+    raw: bytes | None
+    """The telegram as framed on the wire (for raw logging), or None if ``keep_raw`` is off."""
 
 
 @dataclass(frozen=True)
@@ -182,7 +196,8 @@ class ScannerClient:
     ``timeout_s`` bounds every request and the TCP connect. ``reconnect`` enables the automatic
     reconnect with ``backoff``. ``queue_size`` bounds the streamed-scan queue. ``stall_timeout_s``
     (default ``max(2 * timeout_s, 1 s)``): a stream that delivered scans and then goes silent for
-    this long is treated as a dead link (half-open TCP) and reconnected.
+    this long is treated as a dead link (half-open TCP) and reconnected. ``keep_raw``: keep each
+    streamed telegram's bytes in its :class:`ScanRecord` (for raw logging).
     """
 
     def __init__(
@@ -196,6 +211,7 @@ class ScannerClient:
         backoff: Backoff | None = None,
         queue_size: int = 256,
         stall_timeout_s: float | None = None,
+        keep_raw: bool = True,
     ) -> None:
         try:
             self.dialect = Dialect(dialect.lower() if isinstance(dialect, str) else dialect)
@@ -211,8 +227,9 @@ class ScannerClient:
         self.reconnect = reconnect
         self.backoff = backoff or Backoff()
         self.stall_timeout_s = max(2.0 * timeout_s, 1.0) if stall_timeout_s is None else stall_timeout_s
+        self.keep_raw = keep_raw
         self._stats = StatsCounter()
-        self._queue: DroppingQueue[Scan] = DroppingQueue(queue_size)
+        self._queue: DroppingQueue[ScanRecord] = DroppingQueue(queue_size)
         self._gaps = GapTracker()
         self._state = threading.Lock()  # guards _link, _pending, _session, _fatal, _reconnector
         self._req_lock = threading.Lock()  # one request in flight (the device serves one at a time)
@@ -450,13 +467,17 @@ class ScannerClient:
         timeout) and raises :class:`DeviceTimeoutError` if none came; raises the connection error if
         the link is gone for good, and :class:`ScannerStateError` if nothing is queued and the
         client is not streaming."""
+        return self.next_record(timeout).scan
+
+    def next_record(self, timeout: float | None = None) -> ScanRecord:
+        """Like :meth:`next_scan`, with the host receive time and the raw telegram."""
         wait = self.timeout_s if timeout is None else timeout
         if not self._session.streaming and len(self._queue) == 0:
             raise ScannerStateError(f"not streaming from {self.address}: call start_streaming() first")
-        scan = self._queue.get(wait)
-        if scan is None:
+        record = self._queue.get(wait)
+        if record is None:
             raise DeviceTimeoutError(f"no scan from {self.address} within {wait:g} s")
-        return scan
+        return record
 
     def scans(self, count: int | None = None, timeout: float | None = None) -> Iterator[Scan]:
         """Iterate over streamed scans (``count`` of them, or forever)."""
@@ -596,24 +617,30 @@ class ScannerClient:
                     break
                 link.last_rx = time.monotonic()
                 link.codec.receive_data(data)
-                self._drain(link)
+                self._drain(link, link.last_rx)
         finally:
             if link.alive and not self._closing.is_set():
                 self._link_lost(link, reason)
 
-    def _drain(self, link: _Link) -> None:
+    def _drain(self, link: _Link, host_time_s: float) -> None:
+        # the framer and decoder of the link's CoLaConnection, used directly to keep the payload
+        framer = link.codec.framer
         while True:
             try:
-                msg = link.codec.next_message()
+                payload = framer.next_payload()
+                if payload is None:
+                    return
+                msg = decode_payload(payload, self.dialect)
+                if msg.kind not in REPLY_KINDS:
+                    raise TelegramError(f"a device does not send {msg.kind} telegrams ({msg.kind} {msg.name})")
             except CoLaError as exc:  # FramingError / TelegramError: the telegram is skipped
                 self._stats.add("bad_telegrams")
                 log.warning("%s: bad telegram skipped: %s", self.address, exc)
                 continue
-            if msg is None:
-                return
             if isinstance(msg, ScanDataEvent):
                 link.scans += 1
-                self._on_scan(msg.scan)
+                raw = frame(payload, self.dialect) if self.keep_raw else None
+                self._on_scan(ScanRecord(msg.scan, host_time_s, raw))
                 continue
             with self._state:
                 pending = self._pending
@@ -626,7 +653,8 @@ class ScannerClient:
             self._stats.add("unexpected")
             log.debug("%s: unexpected telegram %s %s skipped", self.address, msg.kind, msg.name)
 
-    def _on_scan(self, scan: Scan) -> None:
+    def _on_scan(self, record: ScanRecord) -> None:
+        scan = record.scan
         self._stats.add("received")
         period_us = 1e8 / scan.scan_frequency if scan.scan_frequency > 0 else None
         report = self._gaps.update(scan.scan_counter, scan.time_since_startup_us, period_us, self._output_rate)
@@ -649,7 +677,7 @@ class ScannerClient:
                 scan.scan_counter,
                 scan.telegram_counter,
             )
-        if not self._queue.put(scan):
+        if not self._queue.put(record):
             self._stats.add("queue_drops")
             self._drop_logged += 1
             if self._drop_logged == 1 or self._drop_logged % 100 == 0:

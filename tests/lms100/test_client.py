@@ -31,6 +31,7 @@ from drivers.lms100 import (
     Reboot,
     RebootReply,
     Scan,
+    ScanDataEvent,
 )
 from drivers.lms100.client import (
     Backoff,
@@ -165,6 +166,17 @@ def test_stream_delivers_consecutive_scans_and_unsubscribes(
     counters = [s.scan_counter for s in scans]
     assert counters == list(range(counters[0], counters[0] + 20))
     assert all(s.ranges_m.shape == (1081,) for s in scans)
+    # records: host receive time and the telegram exactly as framed on the wire
+    records = [c.next_record() for _ in range(3)]
+    assert records[0].host_time_s <= records[1].host_time_s <= records[2].host_time_s <= time.monotonic()
+    decoder = CoLaConnection(dialect, role="client")
+    for r in records:
+        assert r.raw is not None
+        decoder.receive_data(r.raw)
+        again = decoder.next_message()
+        assert isinstance(again, ScanDataEvent) and again.scan.scan_counter == r.scan.scan_counter
+        np.testing.assert_array_equal(again.scan.ranges_m, r.scan.ranges_m)
+    assert records[0].scan.scan_counter == counters[-1] + 1
     c.stop_streaming()
     assert not c.streaming
     # drain what was queued before the unsubscription reached the device, then nothing more comes
