@@ -1,0 +1,383 @@
+"""Gauss-Helmert adjustment of the elbow model (seed 000, Eq. 10).
+
+The linearized model is ``A d + B v + w = 0`` with one condition per point (the geometric form of
+Eq. 8, see :mod:`lrms.elbow.model`). ``B`` is block diagonal: row ``i`` touches only point ``i``'s
+three coordinates, so ``M = B Q B^T`` is diagonal (``M_i = B_i Q_i B_i^T``) and the normal
+equations ``N = A^T M^-1 A`` are built with a few vectorized passes over the points.
+
+Unknowns (internal): the centre ``c`` (3), a small rotation ``w`` (3) applied to the current
+rotation as ``R <- exp(-[w]x) R`` (so no Euler-angle singularity can stall the adjustment; the
+reported ``omega, psi, kappa`` and their standard deviations are derived afterwards), then the
+dimensions: ``A`` and ``D`` (ratio free) or ``D`` alone with ``A = ratio D``, and ``Df`` for a
+flanged joint.
+
+Iteration: each step linearizes at the current parameters and at the adjusted observations
+``l0 = l + v`` (the rigorous Gauss-Helmert iteration, misclosure ``w = f(x0, l0) + B (l - l0)``).
+A step that raises the weighted sum of squared orthogonal distances is halved (up to 12 times);
+then the next linearization restarts at ``l0 = l``. The first iterations are Huber-weighted
+(a robust start: a flange point assigned to the bend by a start a few degrees off has a residual
+of ``(Df - D)/2`` and would otherwise drag the solution into a wrong minimum); once those settle,
+plain least-squares iterations follow, so the reported solution and statistics are those of the
+Gauss-Helmert least-squares adjustment. Converged when the parameter update is below
+``tol`` (relative to ``D`` for lengths, in rad for the rotation). The a posteriori variance factor
+is ``s0^2 = v^T P v / (n - u)`` and the parameter covariance ``s0^2 N^-1``. Besides that absolute
+test, the adjustment has converged when every update is below 1 % of the parameter's current
+standard deviation (the cost of a sharp 0.5D elbow is not smooth where the horn torus pinches
+to its axis, and the last digits can otherwise oscillate far below the precision).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from lrms.elbow.model import BEND, ElbowParams, as_points, euler_jacobian, evaluate_model
+from lrms.errors import FitError
+
+FloatArray = NDArray[np.float64]
+
+#: Fewest points accepted for a fit.
+MIN_POINTS = 30
+#: Huber threshold of the robust start, in robust standard deviations of the residuals.
+HUBER_K = 2.0
+#: Points nearer the torus axis than this many residual standard deviations (at most
+#: AXIS_GATE_MAX tube radii) are not used; only sharp elbows have surface there.
+AXIS_GATE = 0.0
+AXIS_GATE_MAX = 0.5
+#: Converged once every parameter update is below this fraction of its standard deviation.
+PRECISION_FRACTION = 0.01
+
+
+def param_names(ratio: float | None, flange: bool) -> list[str]:
+    """Names of the internal unknowns in order."""
+    names = ["Xc", "Yc", "Zc", "wx", "wy", "wz"]
+    names += ["D"] if ratio is not None else ["A", "D"]
+    if flange:
+        names.append("Df")
+    return names
+
+
+def design_matrices(points: ArrayLike, params: ElbowParams, ratio: float | None = None,
+                    flange: bool | None = None) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Condition values ``f`` (n,), design matrix ``A`` (n, u) and ``B`` rows (n, 3), analytic.
+
+    ``A`` is taken with respect to the internal unknowns of :func:`param_names` at ``w = 0``.
+    """
+    pts = as_points(points)
+    has_flange = params.Df is not None if flange is None else flange
+    if has_flange and params.Df is None:
+        raise FitError("a flanged fit needs an initial flange diameter Df")
+    rot = params.rot
+    m = (pts - params.center) @ rot.T
+    ev = evaluate_model(m, params.A, params.D, params.degree, params.Df if has_flange else None)
+    s = np.maximum(ev.s, 1e-12 * max(params.D, 1e-9))
+    dz = (ev.zp - params.A) / s  # d s / d Zp
+    g = np.empty_like(m)  # d f / d m
+    g[:, 0] = dz * np.cos(ev.phi)
+    g[:, 1] = m[:, 1] / s
+    g[:, 2] = dz * np.sin(ev.phi)
+    b = g @ rot
+    cols = [-b, np.cross(g, m)]
+    if ratio is None:
+        cols.append(-dz[:, None])
+        cols.append(-(1.0 - ev.q)[:, None] / 2)
+    else:
+        cols.append((-ratio * dz - (1.0 - ev.q) / 2)[:, None])
+    if has_flange:
+        cols.append(-ev.q[:, None] / 2)
+    return ev.f, np.hstack(cols), b
+
+
+def apply_update(params: ElbowParams, delta: ArrayLike, ratio: float | None, flange: bool) -> ElbowParams:
+    """Parameters after adding the internal update ``delta``."""
+    d = np.asarray(delta, dtype=np.float64)
+    rot = Rotation.from_rotvec(-d[3:6]).as_matrix() @ params.rot
+    # re-orthonormalize against round-off accumulated over iterations
+    u, _, vt = np.linalg.svd(rot)
+    rot = u @ vt
+    if ratio is None:
+        a, dd = params.A + d[6], params.D + d[7]
+        k = 8
+    else:
+        dd = params.D + d[6]
+        a = ratio * dd
+        k = 7
+    df = params.Df + d[k] if flange and params.Df is not None else params.Df
+    return replace(params, center=params.center + d[:3], rot=rot, A=float(a), D=float(dd),
+                   Df=None if df is None else float(df))
+
+
+@dataclass(frozen=True)
+class ElbowFit:
+    """Result of :func:`fit_elbow`."""
+
+    params: ElbowParams
+    cov: FloatArray  # covariance of the internal unknowns (param_names order)
+    names: list[str]
+    sigma0: float  # a posteriori standard deviation of unit weight
+    iterations: int
+    converged: bool
+    n: int
+    redundancy: int
+    residuals: FloatArray  # signed orthogonal distance of each observed point to the fitted surface (m)
+    # n: the points used (all but those within the axis gate of a sharp elbow)
+    ratio: float | None
+    sigmas: dict[str, float] = field(default_factory=dict)
+    inliers: NDArray[np.bool_] | None = None  # set by trimmed fits (lrms.elbow.pipeline): rows of the input used
+
+    @property
+    def rmse(self) -> float:
+        return float(np.sqrt(np.mean(self.residuals**2)))
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary (SI units, angles in degrees where named ``*_deg``)."""
+        p = self.params
+        om, ps, ka = p.angles
+        out: dict[str, Any] = {
+            "model": "elbow",
+            "center_m": [float(x) for x in p.center],
+            "axis": [float(x) for x in p.axis],
+            "bend_radius_m": p.A,
+            "diameter_m": p.D,
+            "ratio": p.A / p.D,
+            "ratio_fixed": self.ratio is not None,
+            "degree": math.degrees(p.degree),
+            "omega_deg": math.degrees(om),
+            "psi_deg": math.degrees(ps),
+            "kappa_deg": math.degrees(ka),
+            "rotation_world_to_model": [[float(x) for x in row] for row in p.rot],
+            "sigma": dict(self.sigmas),
+            "sigma0_m": self.sigma0,
+            "iterations": self.iterations,
+            "converged": self.converged,
+            "n_points": self.n,
+            "redundancy": self.redundancy,
+            "rmse_m": self.rmse,
+        }
+        if p.Df is not None:
+            out["flange_diameter_m"] = p.Df
+        if self.inliers is not None:
+            out["n_outliers"] = int(self.inliers.size - np.count_nonzero(self.inliers))
+        return out
+
+
+def _weights_denominator(b: FloatArray, cov: FloatArray | None) -> FloatArray:
+    if cov is None:
+        return np.asarray(np.einsum("ij,ij->i", b, b))
+    if cov.ndim == 1:
+        return np.asarray(cov * np.einsum("ij,ij->i", b, b))
+    return np.asarray(np.einsum("ni,nij,nj->n", b, cov, b))
+
+
+def _qbt(b: FloatArray, cov: FloatArray | None) -> FloatArray:
+    if cov is None:
+        return b
+    if cov.ndim == 1:
+        return np.asarray(cov[:, None] * b)
+    return np.asarray(np.einsum("nij,nj->ni", cov, b))
+
+
+def _check_cov(cov: ArrayLike | None, n: int) -> FloatArray | None:
+    if cov is None:
+        return None
+    c = np.asarray(cov, dtype=np.float64)
+    if c.shape not in ((n,), (n, 3, 3)):
+        raise FitError(f"point covariance must have shape ({n},) or ({n}, 3, 3), got {c.shape}")
+    if not np.all(np.isfinite(c)):
+        raise FitError("point covariance contains non-finite values")
+    if c.ndim == 1 and np.any(c <= 0):
+        raise FitError("point variances must be positive")
+    if c.ndim == 3 and np.any(np.linalg.eigvalsh(c)[:, 0] <= 0):
+        raise FitError("point covariance matrices must be positive definite")
+    return c
+
+
+def fit_elbow(points: ArrayLike, init: ElbowParams, *, ratio: float | None = None, flange: bool | None = None,
+              cov: ArrayLike | None = None, max_iter: int = 60, tol: float = 1e-9,
+              robust_start: bool = True, axis_gate: float = AXIS_GATE) -> ElbowFit:
+    """Adjust the elbow model to ``points`` (n, 3) from the initial values ``init``.
+
+    ``ratio``: fix ``A = ratio * D`` (e.g. 0.5, 1, 1.5) or ``None`` to estimate ``A`` and ``D``.
+    ``flange``: estimate a flange diameter ``Df`` for the legs (default: whether ``init.Df`` is set).
+    ``cov``: per-point covariance, ``(n,)`` variances or ``(n, 3, 3)`` matrices (m^2); without it
+    all points have unit cofactor and ``sigma0`` is the residual standard deviation in metres.
+    ``robust_start``: begin with Huber-weighted iterations (points far from the current model, e.g.
+    flange points handed to the bend by a slightly wrong start, count less) and finish with plain
+    least squares; the result is the least-squares solution either way.
+    ``axis_gate``: points closer to the torus axis than ``axis_gate`` robust residual standard
+    deviations (but at most ``AXIS_GATE_MAX`` tube radii) are left out; 0 keeps all. Only sharp
+    elbows (``A`` near ``D/2``) have surface there: the horn torus pinches to its axis, the
+    surface's curvature radius along the bend is the distance ``rho`` from the axis, and the
+    orthogonal distance of a noisy point is biased by about ``sigma^2 / (2 rho)``, all with one
+    sign (measured on joint f of Table 1: a bend radius 1 mm short at 1 mm noise without the
+    gate). The set of points used is fixed when the least-squares iterations start.
+    Raises :class:`FitError` for too few points, singular normal equations or no convergence.
+    """
+    pts = as_points(points)
+    n = pts.shape[0]
+    if not np.all(np.isfinite(pts)):
+        raise FitError("points contain NaN or infinite coordinates")
+    has_flange = init.Df is not None if flange is None else bool(flange)
+    if has_flange and init.Df is None:
+        init = replace(init, Df=init.D)
+    if not has_flange:
+        init = replace(init, Df=None)
+    if ratio is not None:
+        init = replace(init, A=ratio * init.D)
+    names = param_names(ratio, has_flange)
+    u = len(names)
+    if n < max(MIN_POINTS, 3 * u):
+        raise FitError(f"too few points for an elbow fit: {n} (need at least {max(MIN_POINTS, 3 * u)})")
+    q = _check_cov(cov, n)
+    scale = max(init.D, 1e-6)
+
+    params = init
+    l0 = pts.copy()
+    converged = False
+    robust = robust_start
+    it = 0
+    vpv = 0.0
+    use = np.ones(n, dtype=bool)
+    for it in range(1, max_iter + 1):
+        f0, amat, b = design_matrices(l0, params, ratio, has_flange)
+        w = f0 + np.einsum("ij,ij->i", b, pts - l0)
+        mm = _weights_denominator(b, q)
+        if np.any(mm <= 0) or not np.all(np.isfinite(mm)):
+            raise FitError("degenerate linearization (zero gradient of the condition)")
+        sqm = np.sqrt(mm)
+        fo = _f_obs(pts, params)
+        z = np.abs(fo) / sqm
+        sig_r = 1.4826 * float(np.median(z))
+        if robust or it == 1:  # the set of points used is frozen once the least-squares phase starts
+            use = _usable(pts, params, sig_r * np.sqrt(np.median(mm)), axis_gate)
+        if np.count_nonzero(use) < max(MIN_POINTS, 3 * u):
+            raise FitError("too few points away from the torus axis for an elbow fit")
+        hub = math.inf
+        wt = np.where(use, 1.0 / mm, 0.0)
+        if robust:
+            hub = HUBER_K * max(sig_r, 1e-12)
+            wt = wt * np.minimum(1.0, hub / np.maximum(z, 1e-300))
+        normal = amat.T @ (amat * wt[:, None])
+        rhs = amat.T @ (wt * w)
+        try:
+            cond = np.linalg.cond(normal)
+            if not np.isfinite(cond) or cond > 1e15:
+                raise np.linalg.LinAlgError("ill-conditioned")
+            delta = -np.linalg.solve(normal, rhs)
+        except np.linalg.LinAlgError as exc:
+            raise FitError("singular normal equations: the points do not determine the elbow "
+                           "(too little coverage or not an elbow)") from exc
+        cost0 = _cost((fo / sqm)[use], hub)
+        floor = n * (1e-12 * scale) ** 2  # round-off level of the cost
+        step = 1.0
+        rigorous = not robust
+        for _ in range(13):
+            trial = apply_update(params, step * delta, ratio, has_flange)
+            if _valid(trial) and _cost((_f_obs(pts, trial) / sqm)[use], hub) <= cost0 * (1 + 1e-9) + floor:
+                break
+            step *= 0.5
+            rigorous = False
+        else:
+            if robust:  # the robust start is stuck: carry on with plain least squares
+                robust, l0 = False, pts.copy()
+                continue
+            raise FitError(f"the adjustment diverged at iteration {it} (no step reduces the residuals)")
+        params = trial
+        kk = np.where(use, -(1.0 / mm) * (amat @ (step * delta) + w), 0.0)
+        v = kk[:, None] * _qbt(b, q)
+        vpv = float(np.sum(kk * kk * mm))
+        l0 = pts + v if rigorous else pts.copy()
+        d = step * np.abs(delta)
+        lin = np.concatenate([d[:3], d[6:]])
+        done = bool(np.max(lin) < tol * scale and np.max(d[3:6]) < tol)
+        # precision criterion: every update below 1 % of its standard deviation
+        n_use = int(np.count_nonzero(use))
+        sd = np.sqrt(np.clip(np.diag(np.linalg.inv(normal)), 0.0, None) * cost0 / max(n_use - u, 1))
+        done = done or bool(it > 1 and np.all(d <= PRECISION_FRACTION * sd))
+        if done and robust:
+            robust, l0 = False, pts.copy()  # robust start finished: polish with plain least squares
+        elif done:
+            converged = True
+            break
+    if not converged:
+        raise FitError(f"the elbow adjustment did not converge in {max_iter} iterations")
+    # final residuals and statistics at the solution (points used in the last iteration)
+    f_fin, amat, b = design_matrices(pts, params, ratio, has_flange)
+    mm = _weights_denominator(b, q)
+    normal = amat[use].T @ (amat[use] / mm[use, None])
+    n_use = int(np.count_nonzero(use))
+    redundancy = n_use - u
+    s0sq = vpv / redundancy
+    try:
+        qxx = np.linalg.inv(normal)
+    except np.linalg.LinAlgError as exc:
+        raise FitError("singular normal matrix at the solution") from exc
+    covx = np.asarray(s0sq * qxx, dtype=np.float64)
+    fit = ElbowFit(params=params, cov=covx, names=names, sigma0=math.sqrt(s0sq), iterations=it, converged=True,
+                   n=n_use, redundancy=redundancy, residuals=np.asarray(f_fin), ratio=ratio)
+    return replace(fit, sigmas=derived_sigmas(fit))
+
+
+def _usable(pts: FloatArray, p: ElbowParams, sigma: float, gate: float) -> NDArray[np.bool_]:
+    """Points used: all but bend points whose foot point lies within the axis gate.
+
+    The gate radius is ``min(gate sigma, AXIS_GATE_MAX D/2)``; the foot point's distance from the
+    torus axis is ``A + (D/2) cos(phi)`` (``phi`` around the tube), which noise along the surface
+    normal does not change, so the selection does not favour one sign of the noise. All points
+    when ``gate`` is 0.
+    """
+    if gate <= 0:
+        return np.ones(pts.shape[0], dtype=bool)
+    m = (pts - p.center) @ p.rot.T
+    ev = evaluate_model(m, p.A, p.D, p.degree, p.Df)
+    radius = min(gate * sigma, AXIS_GATE_MAX * p.D / 2)
+    foot = p.A + (p.D / 2) * (ev.zp - p.A) / np.maximum(ev.s, 1e-300)
+    return np.asarray((ev.portion != BEND) | (foot > radius))
+
+
+def _f_obs(pts: FloatArray, p: ElbowParams) -> FloatArray:
+    return evaluate_model((pts - p.center) @ p.rot.T, p.A, p.D, p.degree, p.Df).f
+
+
+def _cost(z: FloatArray, hub: float) -> float:
+    """Sum of squares, or Huber's cost (times 2) with threshold ``hub``."""
+    if not math.isfinite(hub):
+        return float(np.sum(z * z))
+    a = np.abs(z)
+    return float(np.sum(np.where(a <= hub, a * a, 2 * hub * a - hub * hub)))
+
+
+def _valid(p: ElbowParams) -> bool:
+    vals = [*p.center, p.A, p.D] + ([p.Df] if p.Df is not None else [])
+    if not all(math.isfinite(x) for x in vals):
+        return False
+    return p.D > 0 and p.A > 0 and (p.Df is None or p.Df > 0)
+
+
+def derived_sigmas(fit: ElbowFit) -> dict[str, float]:
+    """Standard deviations of the reported parameters (m, and deg for the angles)."""
+    cov = fit.cov
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    out = {"Xc_m": float(sd[0]), "Yc_m": float(sd[1]), "Zc_m": float(sd[2])}
+    om, ps, ka = fit.params.angles
+    jac = euler_jacobian(om, ps, ka)
+    ce = jac @ cov[3:6, 3:6] @ jac.T
+    se = np.degrees(np.sqrt(np.clip(np.diag(ce), 0.0, None)))
+    out.update({"omega_deg": float(se[0]), "psi_deg": float(se[1]), "kappa_deg": float(se[2])})
+    # axis direction uncertainty: the model Y axis turns by the w components about model X and Z
+    out["axis_deg"] = float(np.degrees(math.sqrt(max(cov[3, 3] + cov[5, 5], 0.0))))
+    if fit.ratio is None:
+        out["A_m"], out["D_m"] = float(sd[6]), float(sd[7])
+        k = 8
+    else:
+        out["D_m"] = float(sd[6])
+        out["A_m"] = float(fit.ratio * sd[6])
+        k = 7
+    if fit.params.Df is not None:
+        out["Df_m"] = float(sd[k])
+    return out

@@ -1,0 +1,247 @@
+"""Automatic initial values for the elbow adjustment (seed 000, Section 2.2.2).
+
+1. **The two connections.** The cloud's two extreme points (the point farthest from the centroid,
+   then the point farthest from that one) lie on the rims of the two pipe ends.
+2. **Slice cylinders.** Near each end a slice of points is cut and a cylinder fitted: the axis
+   direction from the patch normals (the direction most perpendicular to all of them, normals by
+   :func:`lrms.cylinder.estimate_normals`), the axis point and radius from an algebraic circle fit
+   in the plane across it, then an orthogonal-distance polish with
+   :func:`lrms.cylinder.refine_cylinder`. The slice is then re-cut as ``SLICE`` radii along the
+   fitted axis from the end and the cylinder fitted again.
+3. **Inner centre.** The two axes (nearly) intersect at the corner ``P`` of the elbow; the
+   midpoint of their common perpendicular is taken. The bend plane's normal is the cross product
+   of the two axis directions, and the angle between them gives the joint degree.
+4. **Pose and size.** With the start leg along model ``+X`` the torus centre is
+   ``O = P - A e_Z + A tan(d/2) e_X``. ``D`` is twice the mean slice radius; ``A`` is
+   ``ratio D`` when the ratio is fixed, else found by golden-section search on the trimmed mean
+   squared distance of the points to the model. The three rotations (about the model axes) are
+   then refined one at a time by golden-section search on the same cost, twice over (the
+   seed's golden-section search for ``Omega`` and ``Psi``).
+
+The cloud must show both connections (any pose, coverage about 180 deg or more around the pipe).
+:class:`lrms.errors.FitError` is raised when no elbow can be made out (too few points, the two ends
+nearly collinear, no usable slice).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import replace
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from lrms.cylinder import Cylinder, CylinderModel, estimate_normals, refine_cylinder
+from lrms.elbow.model import ElbowParams, as_points, evaluate_model
+from lrms.errors import FitError
+from lrms.ransac import ransac
+
+FloatArray = NDArray[np.float64]
+
+#: Slice length along the axis at each end, in tube radii (flanged joints: in flange radii).
+SLICE = 0.8
+FLANGE_SLICE = 0.35
+#: Radius of the first patch around an end point, as a fraction of the end-to-end distance.
+PATCH = 0.25
+FLANGE_PATCH = 0.25
+#: RANSAC inlier threshold for the slice cylinders, as a fraction of the end-to-end distance.
+RANSAC_THRESHOLD = 0.015
+#: Points used for the cost of the golden-section searches.
+COST_SAMPLE = 6000
+#: Fewest points for an automatic start.
+MIN_POINTS = 200
+#: Nominal degrees the estimated degree snaps to when within SNAP_DEG.
+NOMINAL_DEGREES = (45.0, 90.0)
+SNAP_DEG = 12.0
+
+
+def _circle_fit(u: FloatArray, v: FloatArray) -> tuple[float, float, float]:
+    """Algebraic (Kasa) circle fit: centre (u0, v0) and radius."""
+    a = np.column_stack([u, v, np.ones_like(u)])
+    b = u * u + v * v
+    sol, *_ = np.linalg.lstsq(a, b, rcond=None)
+    u0, v0 = sol[0] / 2, sol[1] / 2
+    r2 = sol[2] + u0 * u0 + v0 * v0
+    if not r2 > 0:
+        raise FitError("slice circle fit failed (points not on a circle)")
+    return float(u0), float(v0), math.sqrt(r2)
+
+
+def _frame(w: FloatArray) -> tuple[FloatArray, FloatArray]:
+    a = np.array([1.0, 0.0, 0.0]) if abs(w[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(w, a)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(w, e1)
+
+
+def _slice_cylinder(patch: FloatArray, rng: np.random.Generator, size: float) -> Cylinder:
+    """Cylinder through a slice of pipe: RANSAC on points with normals, then an ODR polish.
+
+    The RANSAC (:class:`lrms.cylinder.CylinderModel` in :func:`lrms.ransac.ransac`: axis from two
+    points' normals) keeps the dominant cylinder of the patch, so a patch that also catches part
+    of the bend or of a flange still gives the leg's cylinder.
+    """
+    if patch.shape[0] < 20:
+        raise FitError(f"too few points near a pipe end for the slice cylinder ({patch.shape[0]})")
+    sub = patch if patch.shape[0] <= 800 else patch[rng.choice(patch.shape[0], 800, replace=False)]
+    normals = estimate_normals(sub, k=min(30, sub.shape[0]))
+    thr = RANSAC_THRESHOLD * size
+    try:
+        model, _ = ransac(np.hstack([sub, normals]), CylinderModel, 2, thr, max_trials=300,
+                          min_inliers=max(10, sub.shape[0] // 10), refine=False, rng=rng)
+    except FitError as exc:
+        raise FitError(f"no pipe found near an end of the cloud ({exc})") from exc
+    assert model.cylinder is not None
+    cyl = model.cylinder
+    near = np.abs(cyl.surface_distance(patch)) < thr
+    if np.count_nonzero(near) < 20:
+        return cyl
+    try:
+        return refine_cylinder(patch[near], cyl, sigma=None, max_rounds=2, gate=3.0).cylinder
+    except FitError:
+        return cyl
+
+
+def _end_cylinder(pts: FloatArray, end: FloatArray, centroid: FloatArray, size: float,
+                  rng: np.random.Generator, flange: bool) -> Cylinder:
+    """Cylinder fitted to the slice of points at one pipe end."""
+    patch = pts[np.linalg.norm(pts - end, axis=1) < (FLANGE_PATCH if flange else PATCH) * size]
+    slice_len = FLANGE_SLICE if flange else SLICE
+    cyl = _slice_cylinder(patch, rng, size)
+    for _ in range(2):
+        w = cyl.direction if float((centroid - end) @ cyl.direction) > 0 else -cyl.direction
+        t = (pts - cyl.point) @ w
+        near = cyl.axis_distance(pts) < 1.6 * cyl.radius
+        if np.count_nonzero(near) < 20:
+            raise FitError("no pipe found near an end of the cloud")
+        t0 = float(np.min(t[near]))
+        sel = near & (t < t0 + slice_len * cyl.radius)
+        cyl = _slice_cylinder(pts[sel], rng, size)
+    w = cyl.direction if float((centroid - end) @ cyl.direction) > 0 else -cyl.direction
+    return Cylinder(cyl.point, w, cyl.radius)
+
+
+def _trimmed_cost(pts: FloatArray, p: ElbowParams) -> float:
+    ev = evaluate_model((pts - p.center) @ p.rot.T, p.A, p.D, p.degree, p.Df)
+    cap = (0.25 * p.D) ** 2
+    return float(np.mean(np.minimum(ev.f**2, cap)))
+
+
+def _golden(fun: Callable[[float], float], lo: float, hi: float, tol: float = 1e-4) -> float:
+    """Golden-section search for a minimum of ``fun`` on ``[lo, hi]`` (the seed's ref. 25).
+
+    A bounded search rather than :func:`scipy.optimize.golden`, which needs a bracketing triple
+    that a minimum on the interval's edge does not give.
+    """
+    invphi = (math.sqrt(5.0) - 1.0) / 2.0
+    a, b = lo, hi
+    c, d = b - invphi * (b - a), a + invphi * (b - a)
+    fc, fd = fun(c), fun(d)
+    while abs(b - a) > tol * max(1.0, abs(a) + abs(b)):
+        if fc < fd:
+            b, d, fd = d, c, fc
+            c = b - invphi * (b - a)
+            fc = fun(c)
+        else:
+            a, c, fc = c, d, fd
+            d = a + invphi * (b - a)
+            fd = fun(d)
+    return 0.5 * (a + b)
+
+
+def _sizes_from_pose(pts: FloatArray, p: ElbowParams, flange: bool) -> ElbowParams:
+    """Tube (and flange) radius as the median distance of the points from the centre line."""
+    ev = evaluate_model((pts - p.center) @ p.rot.T, p.A, p.D, p.degree, p.Df)
+    bend = ev.portion == 1
+    if flange:
+        legs = ~bend
+        d = 2 * float(np.median(ev.s[bend])) if np.count_nonzero(bend) > 20 else p.D
+        df = 2 * float(np.median(ev.s[legs])) if np.count_nonzero(legs) > 20 else p.Df
+        return replace(p, D=d, Df=df)
+    return replace(p, D=2 * float(np.median(ev.s)))
+
+
+def initial_values(points: ArrayLike, degree: float | None = None, ratio: float | None = None,
+                   flange: bool = False, rng: np.random.Generator | None = None) -> ElbowParams:
+    """Initial elbow parameters from the cloud alone (see the module docstring).
+
+    ``degree`` (rad) fixes the joint degree; ``None`` takes the angle between the two end axes
+    (snapped to 45 or 90 deg when within 12 deg). ``ratio`` fixes ``A = ratio D``.
+    """
+    pts = as_points(points)
+    if pts.shape[0] < MIN_POINTS:
+        raise FitError(f"too few points to find an elbow: {pts.shape[0]} (need at least {MIN_POINTS})")
+    if not np.all(np.isfinite(pts)):
+        raise FitError("points contain NaN or infinite coordinates")
+    g = np.random.default_rng(12345) if rng is None else rng
+    centroid = pts.mean(axis=0)
+    e1 = pts[int(np.argmax(np.linalg.norm(pts - centroid, axis=1)))]
+    e2 = pts[int(np.argmax(np.linalg.norm(pts - e1, axis=1)))]
+    size = float(np.linalg.norm(e2 - e1))
+    if size <= 0:
+        raise FitError("all points coincide")
+    c1 = _end_cylinder(pts, e1, centroid, size, g, flange)
+    c2 = _end_cylinder(pts, e2, centroid, size, g, flange)
+    u1, u2 = c1.direction, c2.direction
+    normal = np.cross(u1, u2)
+    sn = float(np.linalg.norm(normal))
+    d_est = math.acos(float(np.clip(-u1 @ u2, -1.0, 1.0)))
+    if sn < math.sin(math.radians(10.0)) or d_est < math.radians(10.0):
+        raise FitError(f"no elbow found: the two pipe ends are nearly parallel (turn {math.degrees(d_est):.1f} deg)")
+    if degree is None:
+        deg = math.degrees(d_est)
+        near = [nd for nd in NOMINAL_DEGREES if abs(nd - deg) <= SNAP_DEG]
+        degree = math.radians(near[0]) if near else d_est
+    # corner: midpoint of the common perpendicular of the two axes
+    r12 = c1.point - c2.point
+    b = float(u1 @ u2)
+    den = 1.0 - b * b
+    s = (b * float(u2 @ r12) - float(u1 @ r12)) / den
+    t = (float(u2 @ r12) - b * float(u1 @ r12)) / den
+    corner = 0.5 * ((c1.point + s * u1) + (c2.point + t * u2))
+    ex = -u1
+    ey = normal / sn
+    ez = np.cross(ex, ey)
+    rot = np.vstack([ex, ey, ez])
+    dia = c1.radius + c2.radius
+    df: float | None = None
+    if flange:
+        df = dia
+    a0 = dia if ratio is None else ratio * dia
+
+    def params_for(a: float, rot_: FloatArray = rot) -> ElbowParams:
+        o = corner - a * rot_[2] + a * math.tan(degree / 2) * rot_[0]
+        return ElbowParams(o, rot_, a, dia, float(degree), df)
+
+    sample = pts if pts.shape[0] <= COST_SAMPLE else pts[g.choice(pts.shape[0], COST_SAMPLE, replace=False)]
+    p = params_for(a0)
+    if flange:
+        p = _sizes_from_pose(sample, p, True)
+    if ratio is None:
+        a_best = _golden(lambda a: _trimmed_cost(sample, replace(params_for(a), D=p.D, Df=p.Df)), 0.5 * p.D,
+                         2.0 * p.D)
+        p = replace(params_for(max(a_best, 0.45 * p.D)), D=p.D, Df=p.Df)
+    # golden-section refinement of the rotation about each model axis (pivot: the corner)
+    for _ in range(2):
+        for axis in range(3):
+            def cost(angle: float, axis: int = axis, base: ElbowParams = p) -> float:
+                return _trimmed_cost(sample, _rotated(base, axis, angle, corner, ratio))
+            best = _golden(cost, -0.15, 0.15)
+            p = _rotated(p, axis, best, corner, ratio)
+        p = _sizes_from_pose(sample, p, flange)
+        if ratio is not None:
+            p = replace(p, A=ratio * p.D)
+    return p
+
+
+def _rotated(p: ElbowParams, axis: int, angle: float, pivot: FloatArray, ratio: float | None) -> ElbowParams:
+    """``p`` turned by ``angle`` about model axis ``axis`` through ``pivot`` (world point)."""
+    rv = np.zeros(3)
+    rv[axis] = angle
+    dr = Rotation.from_rotvec(rv).as_matrix()
+    rot = dr @ p.rot
+    # the centre turns with the frame about the pivot
+    center = pivot + rot.T @ (p.rot @ (p.center - pivot))
+    return replace(p, rot=rot, center=center)

@@ -1,0 +1,93 @@
+"""From a cloud to an elbow fit: initial values, adjustment, labelling of the legs, trimming."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from lrms.elbow.gauss_helmert import ElbowFit, fit_elbow
+from lrms.elbow.initial import initial_values
+from lrms.elbow.model import BEND, END, START, ElbowParams, as_points, evaluate_model
+from lrms.errors import FitError
+
+FloatArray = NDArray[np.float64]
+
+#: Fits whose a posteriori sigma exceeds this fraction of D are not elbows.
+MAX_SIGMA0_FRACTION = 0.15
+#: The end leg must be this much longer than the start leg before the two are swapped.
+LEG_MARGIN = 1.05
+
+
+def leg_extents(points: ArrayLike, params: ElbowParams) -> tuple[float, float, int]:
+    """How far the points reach along the start and end legs (m) and how many lie on the bend."""
+    m = params.to_model(points)
+    ev = evaluate_model(m, params.A, params.D, params.degree, params.Df)
+    theta0 = math.pi / 2 + params.degree
+    start = m[ev.portion == START, 0]
+    end_dir = np.array([-math.sin(theta0), 0.0, math.cos(theta0)])
+    end = m[ev.portion == END] @ end_dir
+    return (float(start.max()) if start.size else 0.0, float(end.max()) if end.size else 0.0,
+            int(np.count_nonzero(ev.portion == BEND)))
+
+
+def canonical(points: ArrayLike, params: ElbowParams) -> ElbowParams:
+    """The labelling of the two legs with the longer visible leg as the start leg.
+
+    The model cannot tell its legs apart (a half turn about the bend's bisector maps it onto
+    itself); registration needs both clouds labelled alike, so we label by visible leg length.
+    """
+    s, e, _ = leg_extents(points, params)
+    return params.flipped() if e > LEG_MARGIN * s else params
+
+
+def fit_auto(points: ArrayLike, *, degree: float | None = None, ratio: float | None = None, flange: bool = False,
+             cov: ArrayLike | None = None, init: ElbowParams | None = None, trim: float | None = None,
+             max_iter: int = 60, rng: np.random.Generator | None = None) -> ElbowFit:
+    """Fit an elbow to ``points`` without manual start values.
+
+    ``degree`` (rad): the joint degree (``None``: estimated from the two pipe ends, snapped to 45
+    or 90 deg when close); ``ratio``: ``A/D`` fixed, or ``None`` (free); ``flange``: fit ``Df``.
+    ``trim``: drop points farther than ``trim * sigma0`` from the fitted surface and refit (up to
+    three rounds; the kept rows are in ``fit.inliers``). Raises :class:`FitError` when no elbow
+    is found or the adjustment fails; a fit whose residual spread exceeds 15 % of ``D`` is
+    rejected as "not an elbow".
+    """
+    pts = as_points(points)
+    start = init if init is not None else initial_values(pts, degree=degree, ratio=ratio, flange=flange, rng=rng)
+    if init is not None and degree is not None:
+        start = replace(start, degree=degree)
+    cv = None if cov is None else np.asarray(cov, dtype=np.float64)
+    fit = fit_elbow(pts, start, ratio=ratio, flange=flange, cov=cv, max_iter=max_iter)
+    keep = np.ones(pts.shape[0], dtype=bool)
+    if trim is not None:
+        if trim <= 0:
+            raise FitError(f"trim must be > 0 (in sigma0), got {trim}")
+        for _ in range(3):
+            res = np.abs(fit.residuals) if keep.all() else np.abs(_residuals(pts, fit.params))
+            sig = fit.sigma0 * (1.0 if cv is None else float(np.sqrt(np.median(cv if cv.ndim == 1 else
+                                                                                 np.trace(cv, axis1=1, axis2=2) / 3))))
+            new_keep = res < trim * sig
+            if np.array_equal(new_keep, keep):
+                break
+            keep = new_keep
+            sub_cov = None if cv is None else cv[keep]
+            fit = fit_elbow(pts[keep], fit.params, ratio=ratio, flange=flange, cov=sub_cov, max_iter=max_iter)
+    sub = pts[keep]
+    can = canonical(sub, fit.params)
+    if can is not fit.params:
+        fit = fit_elbow(sub, can, ratio=ratio, flange=flange, cov=None if cv is None else cv[keep], max_iter=max_iter)
+    if cv is None and fit.sigma0 > MAX_SIGMA0_FRACTION * fit.params.D:
+        raise FitError(f"no elbow: residual spread {fit.sigma0 * 1e3:.1f} mm is {fit.sigma0 / fit.params.D:.0%} of "
+                       f"the fitted diameter {fit.params.D * 1e3:.1f} mm")
+    _, _, nb = leg_extents(sub, fit.params)
+    if nb < 10:
+        raise FitError("no elbow: hardly any points lie on the bend of the fitted model")
+    return replace(fit, inliers=keep if trim is not None else None,
+                   residuals=_residuals(pts, fit.params) if trim is not None else fit.residuals)
+
+
+def _residuals(pts: FloatArray, p: ElbowParams) -> FloatArray:
+    return evaluate_model(p.to_model(pts), p.A, p.D, p.degree, p.Df).f
