@@ -30,6 +30,8 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
+import termios
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -484,17 +486,21 @@ def open_url(url: DeviceURL | str, *, config: DriveConfig | Mapping[str, Any] | 
     regmap = load_map(map_path) if map_path else default_map()
     if word_order:
         regmap = RegisterMap(regmap.entries, word_order, regmap.sample, regmap.source)  # type: ignore[arg-type]
+    # A pseudo-terminal has no parity bit: Linux drops PARENB from its termios and then refuses
+    # (EINVAL) to apply it again on the next open, so a pty is opened as 8N1. The parity still sets
+    # the character time (11 bits for 8E1) the silent intervals are computed from.
+    is_pty = port_url.startswith("/") and os.path.realpath(port_url).startswith("/dev/pts/")
     try:
         port = serial.serial_for_url(
             port_url,
             baudrate=baud,
             bytesize=serial.EIGHTBITS,
-            parity=parity,
+            parity="N" if is_pty else parity,
             stopbits=serial.STOPBITS_TWO if stopbits == 2 else serial.STOPBITS_ONE,
             timeout=READ_SLICE_S,
             exclusive=True if port_url.startswith("/") else None,
         )
-    except (OSError, ValueError, serial.SerialException) as exc:
+    except (OSError, ValueError, serial.SerialException, termios.error) as exc:
         raise DeviceConnectionError(f"cannot open {port_url} for {u.raw!r}: {exc}") from exc
     timing = RtuTiming.for_line(baud, parity, stopbits)
     client = ModbusRtuClient(port, unit=unit, timing=timing, timeout=timeout, retries=retries,

@@ -77,6 +77,13 @@ def test_server_serves_a_real_pty(server: ModbusDriveServer) -> None:
     assert os.isatty(os.open(path, os.O_RDWR | os.O_NOCTTY)) is True
 
 
+def test_the_pty_can_be_opened_again_with_the_default_parity(server: ModbusDriveServer) -> None:
+    for _ in range(2):  # a pty drops PARENB and refuses it on the next open; the backend opens it 8N1
+        with open_url(server.url + "&parity=E&poll_hz=0", config=CONFIG) as m:
+            assert m.client.timing.bits_per_char == 11  # 8E1 timing all the same
+            assert m.state is State.SWITCH_ON_DISABLED
+
+
 def test_enable_walks_the_state_machine(motor: ModbusMotor, server: ModbusDriveServer) -> None:
     assert motor.state is State.SWITCH_ON_DISABLED
     motor.enable()
