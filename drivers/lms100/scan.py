@@ -16,6 +16,7 @@ vectorised hex parser for CoLa A (and the reverse for encoding).
 from __future__ import annotations
 
 import math
+import re
 import struct
 from dataclasses import dataclass, field
 from typing import Any
@@ -506,16 +507,40 @@ def format_hex_tokens(values: npt.NDArray[Any], max_digits: int) -> bytes:
     return out[mask].tobytes()[:-1]
 
 
+def _hex_re(*digits: int) -> re.Pattern[bytes]:
+    return re.compile(b" ".join(b"([0-9A-Fa-f]{1,%d})" % d for d in digits) + b" ")
+
+
+# version .. measurement frequency (16 tokens), each followed by a space
+_HDR_A = _hex_re(4, 4, 8, 2, 2, 4, 4, 8, 8, 2, 2, 2, 2, 4, 8, 8)
+# content name, scale, offset, start angle, step, count; the count may end the text (0 values, then nothing)
+_CH_A = re.compile(
+    rb"([^ ]+) ([0-9A-Fa-f]{1,8}) ([0-9A-Fa-f]{1,8}) ([0-9A-Fa-f]{1,8}) ([0-9A-Fa-f]{1,4}) ([0-9A-Fa-f]{1,4}) "
+)
+_REALS = struct.Struct(">ff")
+_U32X2 = struct.Struct(">II")
+
+
 def _channels_a(r: AsciiReader, max_digits: int, out_dtype: type[np.unsignedinteger[Any]]) -> list[Channel]:
     count = r.num(2)
     channels: list[Channel] = []
     for _ in range(count):
-        name = r.token().decode("latin-1")
-        scale = r.real()
-        offset = r.real()
-        start = r.num(4, True)
-        step = r.num(2)
-        n = r.num(2)
+        m = _CH_A.match(r.buf, r.pos)
+        if m is not None:  # fast path: the device's own hex notation
+            name = m[1].decode("latin-1")
+            scale, offset = _REALS.unpack(_U32X2.pack(int(m[2], 16), int(m[3], 16)))
+            start = int(m[4], 16)
+            if start >= 1 << 31:
+                start -= 1 << 32
+            step, n = int(m[5], 16), int(m[6], 16)
+            r.pos = m.end()
+        else:  # general path: signed decimals etc., with precise errors
+            name = r.token().decode("latin-1")
+            scale = r.real()
+            offset = r.real()
+            start = r.num(4, True)
+            step = r.num(2)
+            n = r.num(2)
         values, r.pos = parse_hex_tokens(r.buf, r.pos, n, max_digits)
         channels.append(
             Channel(name, scale, offset, start * RAD_PER_UNIT, step * RAD_PER_UNIT, values.astype(out_dtype))
@@ -530,19 +555,29 @@ def _flag_a(r: AsciiReader, what: str) -> bool:
 def decode_scan_a(buf: bytes, pos: int) -> Scan:
     """Decode a CoLa A LMDscandata body starting at ``buf[pos]``."""
     r = AsciiReader(buf, pos)
-    version = r.num(2)
-    device_number = r.num(2)
-    serial = r.num(4)
-    status = (r.num(1), r.num(1))
-    tcount = r.num(2)
-    scount = r.num(2)
-    t_start = r.num(4)
-    t_tx = r.num(4)
-    inputs = (r.num(1), r.num(1))
-    outputs = (r.num(1), r.num(1))
-    layer = r.num(2, True)
-    freq = r.num(4)
-    mfreq = r.num(4)
+    m = _HDR_A.match(buf, pos)
+    if m is not None:  # fast path: the device's own hex notation
+        h = [int(g, 16) for g in m.groups()]
+        version, device_number, serial = h[0], h[1], h[2]
+        status, tcount, scount, t_start, t_tx = (h[3], h[4]), h[5], h[6], h[7], h[8]
+        inputs, outputs = (h[9], h[10]), (h[11], h[12])
+        layer = h[13] - (1 << 16) if h[13] >= 1 << 15 else h[13]
+        freq, mfreq = h[14], h[15]
+        r.pos = m.end()
+    else:  # general path: signed decimals etc., with precise errors
+        version = r.num(2)
+        device_number = r.num(2)
+        serial = r.num(4)
+        status = (r.num(1), r.num(1))
+        tcount = r.num(2)
+        scount = r.num(2)
+        t_start = r.num(4)
+        t_tx = r.num(4)
+        inputs = (r.num(1), r.num(1))
+        outputs = (r.num(1), r.num(1))
+        layer = r.num(2, True)
+        freq = r.num(4)
+        mfreq = r.num(4)
     encoders = tuple(Encoder(r.num(4), r.num(2)) for _ in range(r.num(2)))
     ch16 = _channels_a(r, 4, np.uint16)
     ch8 = _channels_a(r, 2, np.uint8)
