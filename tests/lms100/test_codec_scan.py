@@ -236,3 +236,13 @@ def test_poll_reply_is_a_scan_and_the_request_has_no_parameters() -> None:
     assert PollScan().encode(Dialect.B) == b"sRN LMDscandata"
     assert isinstance(decode_payload(GOLDEN_A, Dialect.A), ScanDataReply)
     assert isinstance(Channel, type)
+
+
+def test_cola_a_scan_with_signed_decimals_takes_the_general_path() -> None:
+    decimal = GOLDEN_A.replace(b"LMDscandata 1 1 8D4C04", b"LMDscandata +1 +1 +9260036").replace(
+        b"FFF92230 1388 3 ", b"-450000 +5000 +3 "
+    )
+    assert decimal != GOLDEN_A
+    assert decode_payload(decimal, Dialect.A) == decode_payload(GOLDEN_A, Dialect.A)
+    lower = GOLDEN_A.replace(b"8D4C04", b"8d4c04").replace(b"1F4 3E8", b"1f4 3e8")
+    assert decode_payload(lower, Dialect.A) == decode_payload(GOLDEN_A, Dialect.A)
