@@ -741,7 +741,12 @@ class Cia402Motor(Motor):
     def fault(self) -> FaultInfo | None:
         if self._host_fault is not None:
             return self._host_fault
-        sw = self._fresh_statusword()
+        try:
+            sw = self._fresh_statusword()
+        except MotorFault:
+            if self._host_fault is not None:  # detected meanwhile
+                return self._host_fault
+            raise
         if cia402.decode_state(sw) not in (State.FAULT, State.FAULT_REACTION_ACTIVE):
             return None
         code = self._read_object(cia402.ERROR_CODE)
@@ -754,6 +759,8 @@ class Cia402Motor(Motor):
             sw = self._fresh_statusword()
             if cia402.decode_state(sw) not in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                 return
+            if cia402.decode_state(sw) is State.FAULT_REACTION_ACTIVE:  # commands are ignored until it ends
+                self._wait_state(State.FAULT, timeout, "fault reaction")
             self._cw(cia402.CMD_DISABLE_VOLTAGE)  # bit 7 low, for the rising edge
             self._cw(cia402.CMD_FAULT_RESET)
             try:

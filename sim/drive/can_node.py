@@ -314,11 +314,11 @@ class SimCanNode:
                 if not cob & (1 << 31):
                     raise ObjectAccessError(index, subindex, cia402.ABORT_DEVICE_STATE)
 
-    def _write(self, index: int, subindex: int, payload: bytes) -> None:
+    def _write(self, index: int, subindex: int, payload: bytes, *, size_indicated: bool = True) -> None:
         self._check_pdo_config_write(index, subindex)
         spec = self.drive.spec(index, subindex)
-        if spec.dtype.is_integer and len(payload) > spec.dtype.size and not any(payload[spec.dtype.size :]):
-            payload = payload[: spec.dtype.size]  # size not indicated: 4 bytes, zero-padded
+        if not size_indicated and spec.dtype.is_integer and len(payload) > spec.dtype.size:
+            payload = payload[: spec.dtype.size]  # expedited without size: 4 bytes, padded
         self.drive.write_bytes(index, subindex, payload)
         if (index, subindex) == (cia402.PRODUCER_HEARTBEAT_TIME, 0):
             self._next_heartbeat = time.monotonic()
@@ -328,7 +328,7 @@ class SimCanNode:
         expedited, size_indicated = bool(data[0] & 0x02), bool(data[0] & 0x01)
         if expedited:
             n = (data[0] >> 2) & 0x03 if size_indicated else 0
-            self._write(index, subindex, data[4 : 8 - n])
+            self._write(index, subindex, data[4 : 8 - n], size_indicated=size_indicated)
             self._sdo_reply(struct.pack("<BHB", 0x60, index, subindex))
             return
         self.drive.spec(index, subindex)  # no object: abort now, not after the segments

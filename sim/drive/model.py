@@ -449,7 +449,7 @@ class SimDrive:
         sw = self._state.bits | cia402.SW_REMOTE
         if self._internal_limit:
             sw |= cia402.SW_INTERNAL_LIMIT
-        if self._state is State.FAULT and self._following_error_flag and self._mode is Mode.PROFILE_POSITION:
+        if self._following_error_flag and self._mode is Mode.PROFILE_POSITION:
             sw |= cia402.SW_FOLLOWING_ERROR
         if self._state is not State.OPERATION_ENABLED:
             if self._state is State.QUICK_STOP_ACTIVE and abs(self._demand_vel) == 0.0:

@@ -1,0 +1,286 @@
+"""Our CANopen driver against our simulated drive on a real python-can ``virtual`` bus (in-process)."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Iterator
+
+import can
+import numpy as np
+import pytest
+
+from drivers.errors import DeviceURLError, DriverError
+from drivers.servo import cia402
+from drivers.servo.cia402 import State
+from drivers.servo.cia402_can import CanUrlOptions, Cia402CanMotor, SdoTimeout, open_url
+from drivers.servo.interface import (
+    DriveConfig,
+    HeartbeatLost,
+    MotorFault,
+    MotorStateError,
+    SdoAbort,
+    TargetOutOfRange,
+)
+from drivers.url import open_device
+from sim.drive.can_node import SimCanNode
+from sim.drive.model import SimDrive
+
+FAST = DriveConfig(
+    velocity_rad_s=math.radians(60.0),
+    acceleration_rad_s2=math.radians(1200.0),
+    max_acceleration_rad_s2=math.radians(2000.0),
+    min_angle_rad=math.radians(-100.0),
+    max_angle_rad=math.radians(100.0),
+)
+
+
+@pytest.fixture
+def motor() -> Iterator[Cia402CanMotor]:
+    m = open_device("motor", "sim://?node=5&heartbeat_ms=20", config=FAST)
+    try:
+        yield m
+    finally:
+        m.close()
+
+
+def drive_of(m: Cia402CanMotor) -> SimDrive:
+    drive = m.sim_node.drive
+    assert isinstance(drive, SimDrive)
+    return drive
+
+
+def wait_for(predicate: object, timeout: float = 3.0) -> None:
+    assert callable(predicate)
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not met in time")
+        time.sleep(0.005)
+
+
+def test_enable_move_and_samples(motor: Cia402CanMotor) -> None:
+    assert motor.state is State.SWITCH_ON_DISABLED
+    motor.enable()
+    assert motor.state is State.OPERATION_ENABLED
+    t0 = motor.clock()
+    motor.move_to(math.radians(6.0), wait=True)
+    assert math.degrees(motor.position_rad()) == pytest.approx(6.0, abs=0.01)
+    drive_counts = drive_of(motor).read(cia402.POSITION_ACTUAL)
+    assert drive_counts == pytest.approx(FAST.rad_to_counts(math.radians(6.0)), abs=15)
+    a = motor.sample_arrays_since(t0)
+    assert np.all(np.diff(a.t_host_s) > 0)  # monotonic stamps
+    assert a.position_rad[0] < math.radians(0.5) and a.position_rad[-1] == pytest.approx(math.radians(6.0), abs=2e-4)
+    assert np.max(a.velocity_rad_s) == pytest.approx(math.radians(60.0), rel=0.02)  # cruise reached
+    # every sample carries the statusword of the same SYNC; target reached only at the end
+    reached = (a.statusword & cia402.SW_TARGET_REACHED) != 0
+    assert reached[-1] and not reached[len(reached) // 2]
+    # back, with a callback collecting samples
+    got: list[float] = []
+    remove = motor.add_sample_callback(lambda s: got.append(s.position_rad))
+    motor.move_to(0.0, velocity=math.radians(30.0), wait=True)
+    remove()
+    assert len(got) > 5 and got[-1] == pytest.approx(0.0, abs=2e-4)
+
+
+def test_at_least_100_samples_per_second_counted_on_their_stamps() -> None:
+    with open_device("motor", "sim://?node=7&sync_hz=200") as m:
+        assert isinstance(m, Cia402CanMotor)
+        start = m.sample_count
+        wait_for(lambda: m.sample_count - start >= 260, timeout=10.0)
+        a = m.sample_arrays_since()
+        window = a.t_host_s[(a.t_host_s >= a.t_host_s[-1] - 1.0)]
+        # count the samples stamped within the newest 1 s of stamps
+        assert len(window) >= 100
+        assert np.all(np.diff(a.t_host_s) > 0)
+        assert m.sync_count >= m.sample_count  # one sample per SYNC at most
+
+
+def test_jog_stop_and_quick_stop(motor: Cia402CanMotor) -> None:
+    motor.enable()
+    motor.jog(math.radians(-20.0))
+    wait_for(lambda: abs(math.degrees(motor.velocity_rad_s()) + 20.0) < 0.05)
+    motor.stop()
+    motor.wait_reached(2.0)
+    assert motor.state is State.OPERATION_ENABLED
+    assert abs(motor.velocity_rad_s()) < math.radians(0.05)
+    motor.jog(math.radians(20.0))
+    wait_for(lambda: motor.velocity_rad_s() > math.radians(19.0))
+    motor.quick_stop()
+    wait_for(lambda: motor.state is State.SWITCH_ON_DISABLED)
+    assert abs(motor.velocity_rad_s()) < math.radians(0.05)
+    with pytest.raises(MotorStateError, match="enable"):
+        motor.move_to(0.1)
+    with pytest.raises(TargetOutOfRange):
+        motor.jog(math.radians(1000.0))
+
+
+def test_disable_and_software_limits(motor: Cia402CanMotor) -> None:
+    motor.enable()
+    with pytest.raises(TargetOutOfRange, match="software limit"):
+        motor.move_to(math.radians(101.0))
+    # the drive's own limit (tighter than the host's) clamps the target and raises bit 11
+    motor._write_object(cia402.SOFTWARE_POSITION_LIMIT, 2, FAST.rad_to_counts(math.radians(1.0)))
+    motor.move_to(math.radians(2.0), wait=True)
+    assert math.degrees(motor.position_rad()) == pytest.approx(1.0, abs=0.01)
+    assert motor.statusword & cia402.SW_INTERNAL_LIMIT
+    motor.disable()
+    assert motor.state is State.READY_TO_SWITCH_ON
+
+
+def test_home_sets_zero_here(motor: Cia402CanMotor) -> None:
+    motor.enable()
+    motor.move_to(math.radians(2.0), wait=True)
+    motor.home()
+    assert motor.position_rad() == pytest.approx(0.0, abs=1e-5)
+    assert drive_of(motor).read(cia402.MODES_OF_OPERATION_DISPLAY) == cia402.Mode.HOMING
+    motor.move_to(math.radians(-1.0), wait=True)  # back to profile position after homing
+    assert math.degrees(motor.position_rad()) == pytest.approx(-1.0, abs=0.01)
+    with pytest.raises(SdoAbort) as info:
+        motor.home(method=1)  # the simulated drive only knows "here is home"
+    assert info.value.code == cia402.ABORT_INVALID_VALUE
+
+
+def test_sdo_segmented_transfers_and_abort_codes(motor: Cia402CanMotor) -> None:
+    assert motor.sdo_upload(cia402.DEVICE_NAME) == b"LRMS simulated CiA 402 drive"  # 28 bytes: segmented
+    note = b"beta axis, rig 3, reducer 50:1 (seg)"
+    motor.sdo_download(cia402.USER_NOTE, 0, note, force_segment=True)
+    assert drive_of(motor).read_bytes(cia402.USER_NOTE) == note
+    assert motor.sdo_upload(cia402.USER_NOTE) == note
+    motor.sdo_download(cia402.USER_NOTE, 0, b"ab", force_segment=True)  # short segmented
+    assert motor.sdo_upload(cia402.USER_NOTE) == b"ab"  # expedited upload
+    cases = [
+        (lambda: motor.sdo_upload(0x2345), 0x06020000, "does not exist"),
+        (lambda: motor.sdo_upload(cia402.IDENTITY, 9), 0x06090011, "sub-index"),
+        (lambda: motor.sdo_download(cia402.STATUSWORD, 0, b"\x00\x00"), 0x06010002, "read-only"),
+        (lambda: motor.sdo_download(cia402.MODES_OF_OPERATION, 0, b"\x08"), 0x06090030, "value range"),
+        (lambda: motor.sdo_download(cia402.CONTROLWORD, 0, b"\x06\x00\x00"), 0x06070012, "too high"),
+        (lambda: motor.sdo_download(cia402.TPDO_MAP, 1, b"\x20\x00\x64\x60"), 0x08000022, "device state"),
+    ]
+    for call, code, text in cases:
+        with pytest.raises(SdoAbort) as info:
+            call()
+        assert info.value.code == code
+        assert text in info.value.reason and f"0x{code:08X}" in str(info.value)
+        assert isinstance(info.value, DriverError)
+
+
+def test_emcy_over_current_decoded_and_reset(motor: Cia402CanMotor) -> None:
+    motor.enable()
+    motor.jog(math.radians(10.0))
+    drive_of(motor).inject_fault("over_current")
+    wait_for(lambda: len(motor.emcy_history) >= 1)
+    _, emcy = motor.emcy_history[-1]
+    assert (emcy.code, emcy.register) == (0x2310, 0x03) and emcy.reason == "continuous over-current"
+    wait_for(lambda: motor.state is State.FAULT)
+    fault = motor.fault()
+    assert fault is not None and fault.code == 0x2310 and fault.reason == "continuous over-current"
+    with pytest.raises(MotorFault, match="over-current"):
+        motor.enable()
+    motor.reset_fault()
+    assert motor.fault() is None and motor.state is State.SWITCH_ON_DISABLED
+    wait_for(lambda: motor.emcy_history[-1][1].is_reset)  # EMCY 0x0000 after the reset
+    motor.enable()
+    assert motor.state is State.OPERATION_ENABLED
+
+
+def test_injected_stall_following_error_fault(motor: Cia402CanMotor) -> None:
+    motor.enable()
+    drive_of(motor).inject_fault("following_error")
+    motor.move_to(math.radians(5.0))
+    with pytest.raises(MotorFault) as info:
+        motor.wait_reached(5.0)
+    assert info.value.code == cia402.ERR_FOLLOWING_ERROR and info.value.reason == "following error"
+    assert info.value.statusword is not None and info.value.statusword & cia402.SW_FOLLOWING_ERROR
+    drive_of(motor).clear_injected()
+    motor.reset_fault()
+    motor.enable()
+    motor.move_to(math.radians(0.5), wait=True)
+    assert math.degrees(motor.position_rad()) == pytest.approx(0.5, abs=0.01)
+
+
+def test_heartbeat_loss_is_a_fault_until_it_returns(motor: Cia402CanMotor) -> None:
+    motor.enable()
+    drive_of(motor).inject_fault("heartbeat_loss")
+    wait_for(lambda: motor.fault() is not None)
+    fault = motor.fault()
+    assert fault is not None and fault.code == cia402.ERR_HEARTBEAT and "heartbeat lost" in fault.reason
+    with pytest.raises(HeartbeatLost):
+        motor.move_to(0.1)
+    with pytest.raises(HeartbeatLost, match="still no heartbeat"):
+        motor.reset_fault()
+    # the driver asked the silent drive for a quick stop
+    wait_for(lambda: drive_of(motor).state is State.SWITCH_ON_DISABLED)
+    drive_of(motor).clear_injected()
+    motor.reset_fault()
+    assert motor.fault() is None
+    motor.enable()
+    assert motor.state is State.OPERATION_ENABLED
+
+
+def test_controlword_over_rpdo_is_applied_by_the_node() -> None:
+    # the node applies RPDO1 (controlword, event-driven); NMT state rules PDOs
+    channel = "lrms-test-rpdo"
+    node = SimCanNode(can.Bus(interface="virtual", channel=channel), node_id=9).start()
+    master = can.Bus(interface="virtual", channel=channel)
+    try:
+        master.send(can.Message(arbitration_id=0x000, data=[0x01, 9], is_extended_id=False))  # start
+        master.send(can.Message(arbitration_id=0x209, data=[0x06, 0x00], is_extended_id=False))
+        wait_for(lambda: node.drive.state is State.READY_TO_SWITCH_ON)
+        master.send(can.Message(arbitration_id=0x000, data=[0x02, 9], is_extended_id=False))  # stop
+        wait_for(lambda: node.nmt_state == 0x04)
+        master.send(can.Message(arbitration_id=0x209, data=[0x07, 0x00], is_extended_id=False))
+        master.send(can.Message(arbitration_id=0x609, data=[0x40, 0x41, 0x60, 0, 0, 0, 0, 0], is_extended_id=False))
+        seen = []
+        deadline = time.monotonic() + 0.1
+        while (msg := master.recv(max(0.0, deadline - time.monotonic()))) is not None:
+            seen.append(msg.arbitration_id)
+        assert node.drive.state is State.READY_TO_SWITCH_ON  # stopped: the RPDO was not applied
+        assert 0x589 not in seen  # and the SDO request got no answer
+        master.send(can.Message(arbitration_id=0x000, data=[0x81, 0], is_extended_id=False))  # reset all nodes
+        boot = master.recv(1.0)  # NMT still works when stopped: the node reboots
+        assert boot is not None and boot.arbitration_id == 0x709 and bytes(boot.data) == b"\x00"
+        wait_for(lambda: node.nmt_state == 0x7F)
+    finally:
+        master.shutdown()
+        node.stop()
+        node.bus.shutdown()
+
+
+def test_url_errors() -> None:
+    with pytest.raises(DeviceURLError, match="unknown option"):
+        open_device("motor", "canopen+virtual://x?node=1&speed=3")
+    with pytest.raises(DeviceURLError, match="outside"):
+        open_device("motor", "canopen+virtual://x?node=200")
+    with pytest.raises(DriverError, match="udp_multicast"):
+        open_url("canopen+udp_multicast://239.0.0.1?node=1")
+    with pytest.raises(DriverError, match="host:port"):
+        open_url("canopen+socketcand:///can0?node=1")
+
+
+def test_no_drive_on_the_bus_is_a_timeout() -> None:
+    with pytest.raises(SdoTimeout):
+        Cia402CanMotor.open_bus(
+            {"interface": "virtual", "channel": "lrms-test-empty"}, CanUrlOptions(node=3, sdo_timeout=0.05)
+        )
+
+
+def test_two_threads_share_one_motor(motor: Cia402CanMotor) -> None:
+    motor.enable()
+    errors: list[BaseException] = []
+
+    def poll() -> None:
+        try:
+            for _ in range(30):
+                motor.fault()
+                motor._read_object(cia402.POSITION_ACTUAL)
+        except BaseException as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+
+    t = threading.Thread(target=poll)
+    t.start()
+    motor.move_to(math.radians(1.0), wait=True)
+    t.join()
+    assert not errors
+    assert math.degrees(motor.position_rad()) == pytest.approx(1.0, abs=0.01)
