@@ -52,6 +52,11 @@ IntArray = NDArray[np.intp]
 
 #: Inlier gate on the whitened residual during refinement.
 INLIER_GATE = 3.5
+#: Floor (m) of the lateral standard deviation that scales a beam's miss distance. The
+#: angular noise alone (``l sigma_alpha``, 0.08 mm at 2.5 m) would make the fit hostage to the
+#: last fraction of a millimetre at the silhouette, where real returns are mixed pixels of a
+#: spot tens of mm wide; 1 mm keeps the objective continuous without trusting that edge.
+SILHOUETTE_SIGMA = 1e-3
 #: Parameter steps for the central-difference Jacobian: tilt (rad), shift (m), radius (m).
 _STEPS = np.array([1e-6, 1e-6, 1e-6, 1e-6, 1e-6])
 
@@ -188,7 +193,7 @@ def rays_from_points(points: ArrayLike, p: float = kinematics.DEFAULT_P, noise: 
         dirs=dirs,
         ranges=l,
         sigma_l=np.full(l.shape, nm.sigma_l),
-        sigma_perp=np.maximum(lat, 1e-7),
+        sigma_perp=np.maximum(lat, SILHOUETTE_SIGMA),
     )
 
 
@@ -504,8 +509,12 @@ def refine_cylinder(
     max_rounds: int = 3,
     gate: float = INLIER_GATE,
     max_nfev: int = 200,
+    work_size: int = 20_000,
 ) -> CylinderFit:
     """Least-squares refinement from ``initial`` with inlier re-selection on ``points``.
+
+    Rounds before the last work on at most ``work_size`` random inliers; the final solve always
+    uses every inlier.
 
     With ``rays`` (one per point): the line-of-sight fit, covariance from the a priori noise
     model. Without: the orthogonal-distance fit with isotropic ``sigma`` (m); ``sigma=None``
@@ -519,7 +528,6 @@ def refine_cylinder(
     if rays is not None and rays.ranges.shape[0] != pts.shape[0]:
         raise FitError("rays and points differ in length")
     cyl = initial.with_point_near(pts.mean(axis=0))
-    idx = np.arange(pts.shape[0])
     use_los = rays is not None
     sig = 1.0 if sigma is None else float(sigma)
 
@@ -543,14 +551,25 @@ def refine_cylinder(
             return np.asarray(np.hypot((rays.ranges - t) / rays.sigma_l, gap / rays.sigma_perp), dtype=np.float64)
         return np.asarray(np.abs(c.surface_distance(pts)) / sig, dtype=np.float64)
 
+    idx = np.flatnonzero(whitened_all(cyl) < gate) if use_los else np.arange(pts.shape[0])
+    pick = np.random.default_rng(0)
+
+    def solve_on(sel: IntArray, c: Cylinder) -> Cylinder:
+        if sel.size < 6:
+            raise FitError(f"too few inliers left for a cylinder fit ({sel.size})")
+        fr = _Frame.at(c)
+        out = fr.cylinder(_solve(*make_fun(fr, sel), max_nfev)).with_point_near(pts[sel].mean(axis=0))
+        if out.radius <= 0:
+            raise FitError("cylinder refinement gave a non-positive radius")
+        return out
+
+    partial_solve = False
     for round_ in range(max_rounds):
         if idx.size < 6:
             raise FitError(f"too few inliers left for a cylinder fit ({idx.size})")
-        frame = _Frame.at(cyl)
-        theta = _solve(*make_fun(frame, idx), max_nfev)
-        cyl = frame.cylinder(theta).with_point_near(pts[idx].mean(axis=0))
-        if cyl.radius <= 0:
-            raise FitError("cylinder refinement gave a non-positive radius")
+        partial_solve = idx.size > work_size
+        sel = np.sort(pick.choice(idx, work_size, replace=False)) if partial_solve else idx
+        cyl = solve_on(sel, cyl)
         if not use_los and sigma is None:
             sig = max(float(np.sqrt(np.mean(np.square(cyl.surface_distance(pts[idx]))))), 1e-9)
         if round_ == max_rounds - 1:
@@ -559,6 +578,8 @@ def refine_cylinder(
         if np.array_equal(new_idx, idx):
             break
         idx = new_idx
+    if partial_solve:
+        cyl = solve_on(idx, cyl)
 
     frame = _Frame.at(cyl)
     fun, jfun = make_fun(frame, idx)
@@ -595,28 +616,45 @@ def refine_cylinder(
 
 @dataclass(frozen=True)
 class DetectOptions:
-    """Tuning of :func:`detect_cylinder`; distances in metres."""
+    """Tuning of :func:`detect_cylinder` and :func:`fit_cylinder`; distances in metres.
+
+    ``attempts``: independent RANSAC runs; the refined fit with the most inliers wins.
+    """
 
     sample_size: int = 3000
-    normal_k: int = 24
+    normal_k: int = 32
     threshold: float = 0.03
     normal_weight: float = 0.02
     radius_range: tuple[float, float] = (0.01, 2.0)
     plane_threshold: float = 0.02
-    plane_min_share: float = 0.1
-    plane_normal_deg: float = 25.0
+    plane_normal_weight: float = 0.02
+    plane_min_share: float = 0.05
     max_trials: int = 2000
+    min_trials: int = 200
     min_inliers: int = 20
+    attempts: int = 3
 
 
 def detect_plane(
-    points: ArrayLike, threshold: float, rng: np.random.Generator, min_share: float = 0.1
+    points: ArrayLike,
+    threshold: float,
+    rng: np.random.Generator,
+    min_share: float = 0.05,
+    normals: ArrayLike | None = None,
+    normal_weight: float = 0.02,
 ) -> tuple[FloatArray, float, NDArray[np.bool_]] | None:
     """Dominant plane ``(normal, offset, inlier mask)`` of a cloud, or ``None`` if it holds less
-    than ``min_share`` of the points."""
+    than ``min_share`` of the points. With ``normals``, a point counts only if its normal agrees
+    with the plane's (see :class:`lrms.ransac.PlaneModel`)."""
     pts = np.asarray(points, dtype=np.float64)
+    data = pts if normals is None else np.hstack([pts, np.asarray(normals, dtype=np.float64)])
+
+    class _Plane(PlaneModel):
+        pass
+
+    _Plane.normal_weight = normal_weight if normals is not None else 0.0
     try:
-        model, mask = ransac(pts, PlaneModel, 3, threshold, max_trials=500, rng=rng, score_size=5000)
+        model, mask = ransac(data, _Plane, 3, threshold, max_trials=500, min_trials=100, rng=rng, score_size=5000)
     except FitError:
         return None
     if np.count_nonzero(mask) < min_share * pts.shape[0]:
@@ -638,14 +676,11 @@ def detect_cylinder(
     normals = estimate_normals(sub, opt.normal_k)
     plane: tuple[FloatArray, float] | None = None
     keep = np.ones(sub.shape[0], dtype=bool)
-    found = detect_plane(sub, opt.plane_threshold, g, opt.plane_min_share)
+    found = detect_plane(sub, opt.plane_threshold, g, opt.plane_min_share, normals, opt.plane_normal_weight)
     if found is not None:
         pn, po, pmask = found
-        agree = np.abs(normals @ pn) > np.cos(np.deg2rad(opt.plane_normal_deg))
-        on_plane = pmask & agree
-        if np.count_nonzero(on_plane) >= opt.plane_min_share * sub.shape[0]:
-            plane = (pn, po)
-            keep = ~on_plane
+        plane = (pn, po)
+        keep = ~pmask
     data = np.hstack([sub[keep], normals[keep]])
 
     class _Model(CylinderModel):
@@ -659,12 +694,92 @@ def detect_cylinder(
         2,
         opt.threshold,
         max_trials=opt.max_trials,
+        min_trials=opt.min_trials,
         min_inliers=min_inl,
         refine=False,
         rng=g,
     )
     assert model.cylinder is not None
     return model.cylinder, plane
+
+
+def _refine_from(
+    pts: FloatArray,
+    initial: Cylinder,
+    line_of_sight: bool,
+    rays: Rays | None,
+    opt: DetectOptions,
+) -> CylinderFit:
+    """Orthogonal polish near ``initial``, then the final fit on the whole cloud's candidates."""
+    band = np.flatnonzero(np.abs(initial.surface_distance(pts)) < 1.5 * opt.threshold)
+    if band.size < opt.min_inliers:
+        raise FitError(f"no cylinder found: only {band.size} points near the best candidate")
+    if band.size > 5000:  # a rough start needs no more
+        band = np.sort(np.random.default_rng(1).choice(band, 5000, replace=False))
+    rough = refine_cylinder(pts[band], initial, sigma=None, max_rounds=2, gate=3.0)
+    lo, hi = opt.radius_range
+    if not lo <= rough.cylinder.radius <= hi:
+        raise FitError(f"no cylinder found: radius {rough.cylinder.radius:.4g} m outside [{lo}, {hi}] m")
+    if line_of_sight:
+        assert rays is not None
+        t, gap = rough.cylinder.ray_range(rays.origins, rays.dirs)
+        cand = np.flatnonzero((np.abs(rays.ranges - t) < 2.0 * opt.threshold) & (gap < 2.0 * opt.threshold))
+        if cand.size < opt.min_inliers:
+            raise FitError(f"no cylinder found: only {cand.size} points on the candidate's lines of sight")
+        fit = refine_cylinder(pts[cand], rough.cylinder, rays=rays.subset(cand), max_rounds=4)
+    else:
+        cand = np.flatnonzero(np.abs(rough.cylinder.surface_distance(pts)) < 2.0 * opt.threshold)
+        if cand.size < opt.min_inliers:
+            raise FitError(f"no cylinder found: only {cand.size} points near the candidate")
+        fit = refine_cylinder(pts[cand], rough.cylinder, sigma=None, max_rounds=4, gate=3.0)
+    if not lo <= fit.cylinder.radius <= hi:
+        raise FitError(f"no cylinder found: radius {fit.cylinder.radius:.4g} m outside [{lo}, {hi}] m")
+    inl = cand[fit.inliers]
+    if inl.size < opt.min_inliers:
+        raise FitError(f"no cylinder found: only {inl.size} inliers after refinement")
+    return CylinderFit(
+        cylinder=fit.cylinder,
+        inliers=inl,
+        rmse=fit.rmse,
+        covariance=fit.covariance,
+        frame=fit.frame,
+        line_of_sight=fit.line_of_sight,
+        chi2_dof=fit.chi2_dof,
+        sigma_scale=fit.sigma_scale,
+        n_points=int(pts.shape[0]),
+    )
+
+
+def _off_support(
+    pts: FloatArray, cyl: Cylinder, plane: tuple[FloatArray, float] | None, opt: DetectOptions
+) -> IntArray:
+    """Indices of the points not on the support plane (a plane nearly perpendicular to the axis:
+    the table the part stands on, whose points in front of the base would pass for the part)."""
+    if plane is None or abs(float(plane[0] @ cyl.direction)) < 0.9:
+        return np.arange(pts.shape[0])
+    return np.flatnonzero(np.abs(pts @ plane[0] - plane[1]) > opt.plane_threshold)
+
+
+def _reindex(fit: CylinderFit, use: IntArray, n_points: int) -> CylinderFit:
+    return CylinderFit(
+        cylinder=fit.cylinder,
+        inliers=use[fit.inliers],
+        rmse=fit.rmse,
+        covariance=fit.covariance,
+        frame=fit.frame,
+        line_of_sight=fit.line_of_sight,
+        chi2_dof=fit.chi2_dof,
+        sigma_scale=fit.sigma_scale,
+        n_points=n_points,
+    )
+
+
+def _plausible(fit: CylinderFit, pts: FloatArray, start: Cylinder, opt: DetectOptions) -> bool:
+    """Accept a fit without further RANSAC attempts: the noise model explains it and it keeps
+    most of the points that lay near the RANSAC candidate."""
+    near = int(np.count_nonzero(np.abs(start.surface_distance(pts)) < opt.threshold))
+    chi_ok = fit.chi2_dof < 2.0 or not fit.line_of_sight
+    return chi_ok and fit.n_inliers >= 0.7 * near
 
 
 def fit_cylinder(
@@ -687,6 +802,7 @@ def fit_cylinder(
     """
     nm = noise if noise is not None else NoiseModel()
     opt = options if options is not None else DetectOptions(threshold=max(0.03, 2.5 * nm.sigma_l))
+    g = rng if rng is not None else np.random.default_rng(0)
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise FitError(f"points must have shape (N, 3), got {pts.shape}")
@@ -695,45 +811,46 @@ def fit_cylinder(
         raise FitError(f"{int(np.count_nonzero(~finite))} point(s) are not finite")
     if pts.shape[0] < opt.min_inliers:
         raise FitError(f"too few points for a cylinder: {pts.shape[0]} (need {opt.min_inliers})")
+    if rays is not None and rays.ranges.shape[0] != pts.shape[0]:
+        raise FitError("rays and points differ in length")
+    rr = (rays if rays is not None else rays_from_points(pts, p, nm)) if line_of_sight else None
+    best: CylinderFit | None = None
     plane: tuple[FloatArray, float] | None = None
-    if initial is None:
-        initial, plane = detect_cylinder(pts, opt, rng)
-    # first pass: candidates near the rough surface, orthogonal polish (robust start)
-    band = np.flatnonzero(np.abs(initial.surface_distance(pts)) < 1.5 * opt.threshold)
-    if band.size < opt.min_inliers:
-        raise FitError(f"no cylinder found: only {band.size} points near the best candidate")
-    rough = refine_cylinder(pts[band], initial, sigma=None, max_rounds=2, gate=3.0)
-    if line_of_sight:
-        rr = rays if rays is not None else rays_from_points(pts, p, nm)
-        # gate on the whole cloud with the rough model, then the line-of-sight fit
-        t, gap = rough.cylinder.ray_range(rr.origins, rr.dirs)
-        cand = np.flatnonzero((np.abs(rr.ranges - t) < 2.0 * opt.threshold) & (gap < 2.0 * opt.threshold))
-        if cand.size < opt.min_inliers:
-            raise FitError(f"no cylinder found: only {cand.size} points on the candidate's lines of sight")
-        fit = refine_cylinder(pts[cand], rough.cylinder, rays=rr.subset(cand), max_rounds=4)
-        inl = cand[fit.inliers]
-    else:
-        cand = np.flatnonzero(np.abs(rough.cylinder.surface_distance(pts)) < 2.0 * opt.threshold)
-        fit = refine_cylinder(pts[cand], rough.cylinder, sigma=None, max_rounds=4, gate=3.0)
-        inl = cand[fit.inliers]
-    if inl.size < opt.min_inliers:
-        raise FitError(f"no cylinder found: only {inl.size} inliers after refinement")
+    errors: list[str] = []
+    for _ in range(1 if initial is not None else max(opt.attempts, 1)):
+        try:
+            if initial is not None:
+                start, pl = initial, None
+            else:
+                start, pl = detect_cylinder(pts, opt, g)
+            use = _off_support(pts, start, pl, opt)
+            fit = _refine_from(pts[use], start, line_of_sight, None if rr is None else rr.subset(use), opt)
+            fit = _reindex(fit, use, pts.shape[0])
+        except FitError as exc:
+            errors.append(str(exc))
+            continue
+        if best is None or fit.n_inliers > best.n_inliers:
+            best, plane = fit, pl
+        if initial is None and _plausible(fit, pts, start, opt):
+            break
+    if best is None:
+        raise FitError(errors[-1] if errors else "no cylinder found")
     base = None
     if plane is not None:
         pn, po = plane
-        denom = float(pn @ fit.cylinder.direction)
+        denom = float(pn @ best.cylinder.direction)
         if abs(denom) > 1e-6:
-            s = (po - float(pn @ fit.cylinder.point)) / denom
-            base = fit.cylinder.point + s * fit.cylinder.direction
+            s = (po - float(pn @ best.cylinder.point)) / denom
+            base = best.cylinder.point + s * best.cylinder.direction
     return CylinderFit(
-        cylinder=fit.cylinder,
-        inliers=inl,
-        rmse=fit.rmse,
-        covariance=fit.covariance,
-        frame=fit.frame,
-        line_of_sight=fit.line_of_sight,
-        chi2_dof=fit.chi2_dof,
-        sigma_scale=fit.sigma_scale,
+        cylinder=best.cylinder,
+        inliers=best.inliers,
+        rmse=best.rmse,
+        covariance=best.covariance,
+        frame=best.frame,
+        line_of_sight=best.line_of_sight,
+        chi2_dof=best.chi2_dof,
+        sigma_scale=best.sigma_scale,
         plane=plane,
         base_point=base,
         n_points=int(pts.shape[0]),

@@ -52,6 +52,7 @@ def ransac(
     residual_threshold: float,
     *,
     max_trials: int = 1000,
+    min_trials: int = 0,
     stop_probability: float = 0.99,
     min_inliers: int | None = None,
     score_size: int | None = None,
@@ -85,7 +86,7 @@ def ransac(
     best_ssr = math.inf
     limit = float(max_trials)
     trial = 0
-    while trial < limit and trial < max_trials:
+    while (trial < limit or trial < min_trials) and trial < max_trials:
         trial += 1
         sample = x[g.choice(n, size=min_samples, replace=False)]
         model = model_class()
@@ -116,11 +117,15 @@ def ransac(
 
 
 class PlaneModel:
-    """Plane ``n . x = d`` (unit ``n``) on rows ``(x, y, z, ...)``; extra columns are ignored.
+    """Plane ``n . x = d`` (unit ``n``) on rows ``(x, y, z)`` or ``(x, y, z, nx, ny, nz)``.
 
     ``estimate`` takes 3 points (exact) or more (total least squares through the centroid).
-    ``residuals`` are the orthogonal distances.
+    ``residuals`` are the orthogonal distances; with normals in the rows, plus
+    ``normal_weight`` (m per rad) times the angle between the point's normal and the plane's
+    (so the front of a curved surface does not pass for a plane).
     """
+
+    normal_weight = 0.0
 
     def __init__(self) -> None:
         self.normal: FloatArray = np.array([0.0, 0.0, 1.0])
@@ -148,5 +153,9 @@ class PlaneModel:
         return True
 
     def residuals(self, data: FloatArray) -> FloatArray:
-        pts = np.asarray(data, dtype=np.float64)[:, :3]
-        return np.asarray(np.abs(pts @ self.normal - self.offset), dtype=np.float64)
+        d = np.asarray(data, dtype=np.float64)
+        res = np.abs(d[:, :3] @ self.normal - self.offset)
+        if self.normal_weight > 0 and d.shape[1] >= 6:
+            cosang = np.clip(np.abs(d[:, 3:6] @ self.normal), 0.0, 1.0)
+            res = res + self.normal_weight * np.arccos(cosang)
+        return np.asarray(res, dtype=np.float64)

@@ -35,6 +35,7 @@ from scipy.optimize import minimize
 from lrms import kinematics
 from lrms.covariance import NoiseModel, covariances_of_points
 from lrms.cylinder import (
+    SILHOUETTE_SIGMA,
     Cylinder,
     CylinderFit,
     Rays,
@@ -329,7 +330,7 @@ def _replica_problem(
         l_, al, be = kinematics.inverse(pts, p)
         o, d = kinematics.beam_rays(al, be, p)
         sig_l = np.full(pts.shape[1], nm.sigma_l)
-        sig_p = np.maximum(np.hypot(l_ * nm.sigma_alpha, (l_ * np.sin(al) + p) * nm.sigma_beta), 1e-7)
+        sig_p = np.maximum(np.hypot(l_ * nm.sigma_alpha, (l_ * np.sin(al) + p) * nm.sigma_beta), SILHOUETTE_SIGMA)
 
         def fun(th: FloatArray, i: NDArray[np.intp]) -> FloatArray:
             return los_residuals(th, frame, o[i], d[i], l_[i], sig_l, sig_p[i])
