@@ -46,6 +46,28 @@ class DeviceConfig(_Strict):
         return v
 
 
+class ScannerConfig(DeviceConfig):
+    """The scanner: URL and the scan mode the service sets (an LMS1xx: 25 Hz / 0.25 deg or 50 Hz / 0.5 deg)."""
+
+    scan_frequency_hz: Literal[25, 50] = 25
+    resolution_deg: float = 0.25
+
+    @field_validator("resolution_deg")
+    @classmethod
+    def _resolution(cls, v: float) -> float:
+        if v not in (0.25, 0.5):
+            raise ValueError(f"an LMS1xx scans at 0.25 or 0.5 deg, not {v}")
+        return v
+
+    login_password_hash: int | None = None
+
+    @model_validator(mode="after")
+    def _mode(self) -> ScannerConfig:
+        if self.scan_frequency_hz == 50 and self.resolution_deg == 0.25:
+            raise ValueError("an LMS1xx cannot scan at 50 Hz with 0.25 deg (use 25 Hz/0.25 deg or 50 Hz/0.5 deg)")
+        return self
+
+
 class NoiseConfig(_Strict):
     """The sensor's noise model (seed 003: sigma_l^2 = 136.11 mm^2)."""
 
@@ -81,7 +103,7 @@ class SweepConfig(_Strict):
     """Default sweep: over [start_deg, stop_deg] of the scan-plane angle beta."""
 
     start_deg: float = Field(default=-20.0, ge=-180.0, le=180.0)
-    stop_deg: float = Field(default=60.0, ge=-180.0, le=180.0)
+    stop_deg: float = Field(default=70.0, ge=-180.0, le=180.0)
     speed_deg_s: float = Field(default=10.0, gt=0.0, le=360.0)
     mode: Literal["constant", "step"] = "constant"
     step_deg: float = Field(default=1.0, gt=0.0, le=90.0)
@@ -109,9 +131,8 @@ class SimConfig(_Strict):
     """The embedded simulated rig: scene, real-time factor, CAN transport, fault injection."""
 
     scene: str = "seed003"
-    seed: int | None = None
+    seed: int = Field(default=0, ge=0)
     cola: Literal["a", "b"] = "b"
-    scan_frequency_hz: Literal[25, 50] = 50
     can: Literal["socketcand", "virtual"] = "socketcand"
     node: int = Field(default=1, ge=1, le=127)
 
@@ -120,7 +141,7 @@ class RigConfig(_Strict):
     """The whole rig configuration (the TOML file)."""
 
     name: str = "rig"
-    scanner: DeviceConfig = Field(default_factory=DeviceConfig)
+    scanner: ScannerConfig = Field(default_factory=ScannerConfig)
     motor: DeviceConfig = Field(default_factory=DeviceConfig)
     sim: SimConfig | None = None
     kinematics: dict[str, Any] = Field(default_factory=dict)

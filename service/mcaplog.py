@@ -73,6 +73,21 @@ _JSON_SCHEMA: dict[str, str] = {
 _PROTO_BY_NAME = {cls.DESCRIPTOR.full_name: cls for cls in _PROTO.values()}
 
 
+def json_safe(obj: Any) -> Any:
+    """``obj`` with numpy scalars made plain and non-finite floats replaced by None (strict JSON)."""
+    if isinstance(obj, dict):
+        return {str(k): json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return json_safe(obj.tolist())
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    return obj
+
+
 class McapLogError(ServiceError):
     """The raw log could not be written or read."""
 
@@ -240,7 +255,7 @@ class McapLog:
         """A JSON message on one of the ``/lrms/*`` topics."""
         if topic not in _JSON_SCHEMA:
             raise McapLogError(f"{topic!r} is not a JSON topic of the raw log")
-        data = json.dumps(obj, allow_nan=False).encode()
+        data = json.dumps(json_safe(obj), allow_nan=False).encode()
         self._put(_Item(topic, t_ns, lambda: data))
 
     def close(self) -> None:

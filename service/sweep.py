@@ -16,8 +16,11 @@ The pure functions here are used both live (:func:`run_sweep`) and offline by
 
 from __future__ import annotations
 
+import contextlib
 import math
-from collections.abc import Sequence
+import threading
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -259,3 +262,289 @@ def roi_mask(points: FloatArray, roi_min: ArrayLike | None, roi_max: ArrayLike |
     if roi_max is not None:
         keep &= np.all(points <= np.asarray(roi_max, dtype=np.float64), axis=1)
     return keep
+
+
+# -- recording ----------------------------------------------------------------------------
+
+
+class SweepRecorder:
+    """Turns received scans and motor samples into records, feeding the clock model and the log.
+
+    Live sweeps and ``lrms replay`` both go through this class with the same inputs (host times
+    as integer nanoseconds), so a replay reproduces the live result exactly.
+    """
+
+    def __init__(self, calibration: RigCalibration, log: Any | None = None, dialect: str = "b") -> None:
+        self.calibration = calibration
+        self.log = log
+        self.dialect = dialect
+        self.clock = ClockSync()
+        self.gaps = GapCounter()
+        self.scans: list[ScanRecord] = []
+        self.motor = MotorTrack()
+        self.scan_frequency_hz: float | None = None
+
+    def add_scan(self, scan: Any, host_ns: int, raw: bytes | None = None) -> ScanRecord:
+        """One decoded scan (``drivers.lms100.Scan``) read at host time ``host_ns``."""
+        u0 = self.clock.unwrap(int(scan.time_since_startup_us))
+        utx = self.clock.unwrap(int(scan.time_of_transmission_us))
+        self.clock.update(utx, host_ns * 1e-9)
+        self.gaps.add(int(scan.scan_counter))
+        ch = scan.dist1
+        rec = ScanRecord(
+            host_ns=int(host_ns),
+            scan_counter=int(scan.scan_counter),
+            telegram_counter=int(scan.telegram_counter),
+            t0_us=u0,
+            ttx_us=utx,
+            start_angle_rad=float(ch.start_angle_rad),
+            step_rad=float(ch.step_rad),
+            scan_frequency_hz=float(scan.scan_frequency_hz),
+            ranges_m=np.asarray(scan.ranges_m, dtype=np.float64),
+        )
+        self.scan_frequency_hz = rec.scan_frequency_hz
+        self.scans.append(rec)
+        if self.log is not None:
+            if raw is not None:
+                self.log.log_telegram(host_ns, raw, self.dialect)
+            n = rec.ranges_m.size
+            a0 = float(self.calibration.alpha(rec.start_angle_rad))
+            a1 = float(self.calibration.alpha(rec.start_angle_rad + (n - 1) * rec.step_rad))
+            self.log.log_scan(host_ns, rec.ranges_m, a0, a1)
+            if len(self.motor) >= 2:
+                beta = float(self.calibration.beta(self.motor.position[-1]))
+                self.log.log_plane_pose(host_ns, beta, self.calibration.p)
+        return rec
+
+    def add_motor(self, t_ns: int, position: float, velocity: float) -> None:
+        self.motor.add(t_ns, position, velocity)
+        if self.log is not None:
+            self.log.log_motor(t_ns, position, velocity)
+
+    def scans_between(self, t_start_ns: int, t_end_ns: int | None) -> list[ScanRecord]:
+        """Scans whose first beam falls at or after ``t_start_ns`` (and, given, at or before ``t_end_ns``)."""
+        if not self.scans:
+            return []
+        t0 = np.array([s.t0_us for s in self.scans], dtype=np.float64)
+        host = self.clock.to_host(t0)
+        keep = host >= t_start_ns * 1e-9
+        if t_end_ns is not None:
+            keep &= host <= t_end_ns * 1e-9
+        return [s for s, k in zip(self.scans, keep, strict=True) if k]
+
+    def map(
+        self,
+        t_start_ns: int,
+        t_end_ns: int | None,
+        beta_window: tuple[float, float] | None,
+        min_range_m: float,
+        max_range_m: float,
+    ) -> MappedSweep:
+        scans = self.scans_between(t_start_ns, t_end_ns)
+        if not scans:
+            raise SweepError("no scans were received during the sweep")
+        mt, mp = self.motor.arrays()
+        return map_sweep(scans, mt, mp, self.clock, self.calibration, min_range_m, max_range_m, beta_window)
+
+
+# -- running a sweep on devices -----------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SweepPlan:
+    """A resolved sweep in radians (beta, scan-plane angle) with the motion that realises it."""
+
+    start: float
+    stop: float
+    speed: float
+    acceleration: float
+    mode: str = "constant"
+    step: float = math.radians(1.0)
+    scans_per_step: int = 1
+    approach_speed: float = math.radians(30.0)
+
+    @property
+    def direction(self) -> float:
+        return 1.0 if self.stop > self.start else -1.0
+
+    @property
+    def run_up(self) -> float:
+        """Extra travel before ``start`` and after ``stop`` to be at constant speed over the window."""
+        return self.speed * self.speed / (2.0 * self.acceleration) + math.radians(0.5)
+
+    def beta_window(self) -> tuple[float, float]:
+        return (min(self.start, self.stop), max(self.start, self.stop))
+
+    def step_targets(self) -> FloatArray:
+        n = math.floor(abs(self.stop - self.start) / self.step + 1e-9) + 1
+        return np.asarray(self.start + self.direction * self.step * np.arange(n), dtype=np.float64)
+
+
+class _Motion(threading.Thread):
+    def __init__(self, fn: Callable[[], None]) -> None:
+        super().__init__(name="lrms-sweep-motion", daemon=True)
+        self.fn = fn
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        try:
+            self.fn()
+        except BaseException as exc:  # handed to the sweep loop
+            self.error = exc
+
+
+@dataclass
+class SweepOutcome:
+    recorder: SweepRecorder
+    t_start_ns: int
+    t_end_ns: int
+    plan: SweepPlan
+    scanner_stats: dict[str, Any]
+    duration_s: float
+
+
+def run_sweep(
+    scanner: Any,
+    motor: Any,
+    recorder: SweepRecorder,
+    plan: SweepPlan,
+    *,
+    clock_ns: Callable[[float], int],
+    read_scan: Callable[[float], tuple[Any, float, bytes | None]],
+    progress: Callable[[float, str], None] | None = None,
+    cancelled: Callable[[], bool] | None = None,
+    on_event: Callable[[str, dict[str, Any]], None] | None = None,
+    scan_silence_s: float = 3.0,
+    motion_timeout_s: float | None = None,
+) -> SweepOutcome:
+    """Run one sweep: approach, then sweep (constant speed or step-and-scan), recording all along.
+
+    ``read_scan(timeout)`` returns ``(scan, host monotonic s, raw telegram)`` or raises the
+    driver's timeout; ``clock_ns(t_monotonic)`` turns host seconds into the log's integer ns.
+    The motor runs on its own thread; this loop reads scans, watches for faults, cancellation
+    and scanner silence. On *any* error the motor is stopped (quick stop) before the error is
+    raised; the caller records the reason.
+    """
+    from drivers.errors import DeviceTimeoutError
+
+    cal = recorder.calibration
+    report = progress or (lambda f, m: None)
+    is_cancelled = cancelled or (lambda: False)
+    emit = on_event or (lambda kind, data: None)
+    abort = threading.Event()
+    t_begin = time.monotonic()
+    sample_cursor = [t_begin - 0.5]
+    phase = ["approach"]
+    sweep_t = [0, 0]  # start and end, ns
+
+    def pull_motor() -> None:
+        arr = motor.sample_arrays_since(sample_cursor[0])
+        if len(arr.t_host_s):
+            sample_cursor[0] = float(arr.t_host_s[-1])
+            for t, p, v in zip(arr.t_host_s, arr.position_rad, arr.velocity_rad_s, strict=True):
+                recorder.add_motor(clock_ns(float(t)), float(p), float(v))
+
+    def motion() -> None:
+        pre = plan.start - plan.direction * (plan.run_up if plan.mode == "constant" else 0.0)
+        motor.move_to(
+            float(cal.motor_angle(pre)),
+            velocity=plan.approach_speed,
+            acceleration=plan.acceleration,
+            wait=True,
+            timeout=motion_timeout_s,
+        )
+        if abort.is_set():
+            return
+        phase[0] = "sweep"
+        sweep_t[0] = clock_ns(time.monotonic())
+        emit("sweep_start", {"t_ns": sweep_t[0]})
+        if plan.mode == "constant":
+            post = plan.stop + plan.direction * plan.run_up
+            motor.move_to(
+                float(cal.motor_angle(post)),
+                velocity=plan.speed,
+                acceleration=plan.acceleration,
+                wait=True,
+                timeout=motion_timeout_s,
+            )
+        else:
+            for target in plan.step_targets():
+                if abort.is_set():
+                    return
+                motor.move_to(
+                    float(cal.motor_angle(target)),
+                    velocity=plan.speed,
+                    acceleration=plan.acceleration,
+                    wait=True,
+                    timeout=motion_timeout_s,
+                )
+                f = recorder.scan_frequency_hz or 25.0
+                if abort.wait(0.05 + (plan.scans_per_step + 1) / f):
+                    return
+        sweep_t[1] = clock_ns(time.monotonic())
+        emit("sweep_end", {"t_ns": sweep_t[1]})
+        phase[0] = "run-out"
+
+    mover = _Motion(motion)
+    try:
+        if not getattr(scanner, "streaming", False):
+            scanner.start_streaming()
+        motor.enable()
+        mover.start()
+        last_scan = time.monotonic()
+        span = abs(plan.stop - plan.start)
+        tail_until: float | None = None
+        while True:
+            if is_cancelled():
+                from service.jobs import Cancelled
+
+                raise Cancelled("cancelled by request")
+            try:
+                scan, t_host, raw = read_scan(0.1)
+            except DeviceTimeoutError:
+                if time.monotonic() - last_scan > scan_silence_s:
+                    raise SweepError(f"no scan from the scanner for {scan_silence_s:g} s (connection lost?)") from None
+                scan = None
+            if scan is not None:
+                last_scan = time.monotonic()
+                pull_motor()
+                missing_before = recorder.gaps.missing
+                recorder.add_scan(scan, clock_ns(t_host), raw)
+                if recorder.gaps.missing > missing_before:
+                    emit(
+                        "scan_gap",
+                        {
+                            "missing": recorder.gaps.missing - missing_before,
+                            "before_scan_counter": int(scan.scan_counter),
+                        },
+                    )
+                if len(recorder.motor):
+                    beta = float(cal.beta(recorder.motor.position[-1]))
+                    done = min(max((beta - plan.start) * plan.direction / span, 0.0), 1.0)
+                    report(
+                        0.05 + 0.8 * done if phase[0] != "approach" else 0.02,
+                        f"{phase[0]}: beta {math.degrees(beta):.1f} deg",
+                    )
+            if not mover.is_alive():
+                if mover.error is not None:
+                    raise mover.error
+                # keep reading until the scans cover the end of the sweep (two scan periods)
+                if tail_until is None:
+                    tail_until = time.monotonic() + 2.0 / (recorder.scan_frequency_hz or 25.0) + 0.05
+                if time.monotonic() >= tail_until:
+                    break
+        pull_motor()
+    except BaseException as exc:
+        abort.set()
+        with contextlib.suppress(Exception):
+            motor.quick_stop()
+        mover.join(5.0)
+        with contextlib.suppress(Exception):
+            pull_motor()
+        emit("sweep_aborted", {"reason": str(exc) or type(exc).__name__, "phase": phase[0]})
+        raise
+    finally:
+        with contextlib.suppress(Exception):
+            scanner.stop_streaming()
+    stats = scanner.stats.as_dict() if hasattr(scanner, "stats") else {}
+    return SweepOutcome(recorder, sweep_t[0], sweep_t[1], plan, stats, time.monotonic() - t_begin)

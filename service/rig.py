@@ -1,0 +1,338 @@
+"""The rig coordinator: devices from the config, one measurement = sweep + mapping + fit + log.
+
+:class:`Rig` opens the scanner and the motor with :func:`drivers.url.open_device` (for a ``[sim]``
+config it first starts :class:`sim.rig.SimulatedRig` and opens the URLs that one serves, so the
+service talks to the simulated devices over the same TCP and CAN transports as to real ones).
+:meth:`Rig.measure` is the job runner's measurement function.
+
+Every scan's host receive time and its raw telegram are taken on the scanner client's reader
+thread when the bytes completing the telegram arrive (``ScannerClient.next_record``), not when
+the sweep loop gets to it, so queueing delays in this process do not enter the clock model.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivers.lms100.client import ScannerClient
+from drivers.url import open_device
+from lrms.errors import FitError
+from service import fitting, mcaplog
+from service.config import RigConfig
+from service.errors import ServiceError
+from service.jobs import Cancelled, JobContext
+from service.models import MeasurementRequest, ResolvedSweep, resolve_sweep
+from service.sweep import MappedSweep, SweepError, SweepPlan, SweepRecorder, run_sweep
+
+log = logging.getLogger(__name__)
+
+
+def open_scanner(url: str, **kw: Any) -> ScannerClient:
+    """The LMS100 client for ``url`` (its :meth:`ScannerClient.next_record` gives each scan's
+    host receive time, stamped on the reader thread, and the raw framed telegram)."""
+    client = open_device("scanner", url, **kw)
+    if not isinstance(client, ScannerClient):
+        raise ServiceError(f"scanner URL {url!r} did not give an LMS100 client")
+    return client
+
+
+def write_ply(path: Path, mapped: MappedSweep) -> None:
+    """Binary little-endian PLY: x y z (float32, world frame) plus range, alpha, beta and scan index."""
+    n = mapped.points.shape[0]
+    rec = np.empty(
+        n,
+        dtype=[
+            ("x", "<f4"),
+            ("y", "<f4"),
+            ("z", "<f4"),
+            ("range", "<f4"),
+            ("alpha", "<f4"),
+            ("beta", "<f4"),
+            ("scan", "<i4"),
+        ],
+    )
+    rec["x"], rec["y"], rec["z"] = mapped.points[:, 0], mapped.points[:, 1], mapped.points[:, 2]
+    rec["range"], rec["alpha"], rec["beta"] = mapped.ranges, mapped.alpha, mapped.beta
+    rec["scan"] = mapped.scan_index
+    header = (
+        "ply\nformat binary_little_endian 1.0\ncomment lrms sweep cloud, world frame (m, rad)\n"
+        f"element vertex {n}\n"
+        "property float x\nproperty float y\nproperty float z\n"
+        "property float range\nproperty float alpha\nproperty float beta\nproperty int scan\nend_header\n"
+    )
+    tmp = path.with_suffix(".ply.part")
+    with open(tmp, "wb") as f:
+        f.write(header.encode("ascii"))
+        f.write(rec.tobytes())
+    tmp.replace(path)
+
+
+def plan_from(sweep: ResolvedSweep) -> SweepPlan:
+    return SweepPlan(
+        start=math.radians(sweep.start_deg),
+        stop=math.radians(sweep.stop_deg),
+        speed=math.radians(sweep.speed_deg_s),
+        acceleration=math.radians(sweep.acceleration_deg_s2),
+        mode=sweep.mode,
+        step=math.radians(sweep.step_deg),
+        scans_per_step=sweep.scans_per_step,
+    )
+
+
+def public_config(config: RigConfig) -> dict[str, Any]:
+    """The configuration as logged with a measurement (no token, no storage paths)."""
+    data = config.model_dump(mode="json", exclude={"auth", "storage"})
+    return data
+
+
+def finish_measurement(
+    recorder: SweepRecorder,
+    config: RigConfig,
+    request: MeasurementRequest,
+    sweep: ResolvedSweep,
+    t_start_ns: int,
+    t_end_ns: int | None,
+) -> tuple[MappedSweep, dict[str, Any]]:
+    """Mapping and fit from recorded data: the same code live and in ``lrms replay``."""
+    plan = plan_from(sweep)
+    window = plan.beta_window() if plan.mode == "constant" else None
+    mapped = recorder.map(t_start_ns, t_end_ns, window, config.fit.min_range_m, config.fit.max_range_m)
+    info = sweep_info(recorder, mapped, sweep)
+    try:
+        result = fitting.fit(mapped, request, config)
+    except FitError as exc:
+        raise FitError(f"{exc} ({mapped.points.shape[0]} points mapped)") from exc
+    result.update(info)
+    return mapped, result
+
+
+def sweep_info(recorder: SweepRecorder, mapped: MappedSweep, sweep: ResolvedSweep) -> dict[str, Any]:
+    return {
+        "sweep": {
+            **sweep.model_dump(),
+            "scans_received": recorder.gaps.received,
+            "scans_missing": recorder.gaps.missing,
+            "scan_gaps": [list(g) for g in recorder.gaps.gaps[:100]],
+            "scans_in_sweep": int(np.unique(mapped.scan_index).size),
+            "motor_samples": len(recorder.motor),
+        },
+        "mapping": mapped.stats(),
+        "clock": {
+            "drift_ppm": recorder.clock.drift * 1e6,
+            "residual_jitter_s": recorder.clock.residual_std(),
+            "resets": recorder.clock.resets,
+        },
+    }
+
+
+class Rig:
+    """Scanner + motor of one rig (see the module docstring)."""
+
+    def __init__(self, config: RigConfig) -> None:
+        self.config = config
+        self.sim: Any = None
+        self.scanner: ScannerClient | None = None
+        self.motor: Any = None
+        self.scanner_url: str | None = config.scanner.url
+        self.motor_url: str | None = config.motor.url
+        self._lock = threading.Lock()
+
+    # -- life cycle -----------------------------------------------------------------------
+    def open(self) -> Rig:
+        cfg = self.config
+        try:
+            if cfg.sim is not None:
+                from sim.rig import SimulatedRig
+                from sim.scene import SensorModel
+
+                n = cfg.noise
+                sensor = SensorModel(
+                    sigma_l=n.sigma_l_m,
+                    sigma_alpha=math.radians(n.sigma_alpha_deg),
+                    sigma_beta=math.radians(n.sigma_beta_deg),
+                )
+                self.sim = SimulatedRig(
+                    cfg.sim.scene,
+                    cfg.calibration,
+                    sensor,
+                    seed=cfg.sim.seed,
+                    cola=cfg.sim.cola,
+                    can=cfg.sim.can,
+                    node=cfg.sim.node,
+                )
+                self.scanner_url, self.motor_url = self.sim.scanner_url, self.sim.motor_url
+            assert self.scanner_url is not None and self.motor_url is not None
+            self.scanner = open_scanner(self.scanner_url)
+            self.motor = open_device("motor", self.motor_url)
+            self._configure_scanner()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def _configure_scanner(self) -> None:
+        sc = self.scanner
+        assert sc is not None
+        want = self.config.scanner
+        if want.login_password_hash is not None:
+            sc.login(password_hash=want.login_password_hash)
+        else:
+            sc.login()
+        current = sc.scan_config()
+        if (current.scan_frequency, current.angular_resolution) != (
+            round(want.scan_frequency_hz * 100),
+            round(want.resolution_deg * 10000),
+        ):
+            sc.set_scan_config(float(want.scan_frequency_hz), float(want.resolution_deg))
+        sc.start_measurement()
+        sc.run()
+
+    def close(self) -> None:
+        for name in ("scanner", "motor", "sim"):
+            dev = getattr(self, name)
+            if dev is not None:
+                try:
+                    dev.close()
+                except Exception:  # closing is best effort; keep closing the others
+                    log.exception("closing the %s failed", name)
+                setattr(self, name, None)
+
+    def __enter__(self) -> Rig:
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- state ----------------------------------------------------------------------------
+    def describe(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"scanner": {"url": self.scanner_url}, "motor": {"url": self.motor_url}}
+        sc = self.scanner
+        if sc is not None:
+            out["scanner"].update(connected=sc.connected, streaming=sc.streaming, stats=sc.stats.as_dict())
+        m = self.motor
+        if m is not None:
+            try:
+                fault = m.fault()
+                out["motor"].update(
+                    state=m.state().name if hasattr(m.state(), "name") else str(m.state()),
+                    position_deg=math.degrees(m.position_rad()),
+                    fault=None if fault is None else {"code": fault.code, "reason": fault.reason},
+                )
+            except Exception as exc:  # report, do not fail GET /rig
+                out["motor"]["error"] = str(exc)
+        if self.sim is not None:
+            out["sim"] = self.sim.describe()
+        return out
+
+    # -- a measurement --------------------------------------------------------------------
+    def measure(self, ctx: JobContext) -> dict[str, Any]:
+        with self._lock:
+            return self._measure(ctx)
+
+    def _measure(self, ctx: JobContext) -> dict[str, Any]:
+        if self.scanner is None or self.motor is None:
+            raise ServiceError("the rig is not open")
+        cfg = self.config
+        req = ctx.request
+        try:
+            sweep = resolve_sweep(req.sweep, cfg)
+        except ValueError as exc:
+            raise ServiceError(f"sweep: {exc}") from None
+        fault = self.motor.fault()
+        if fault is not None:
+            raise SweepError(f"motor is faulted before the sweep: {fault.reason} (0x{fault.code:04X}); reset it first")
+        plan = plan_from(sweep)
+        offset_ns = time.time_ns() - time.monotonic_ns()
+
+        def clock_ns(t_monotonic: float) -> int:
+            return round(t_monotonic * 1e9) + offset_ns
+
+        def now_ns() -> int:
+            return clock_ns(time.monotonic())
+
+        dialect = self.scanner.dialect.value
+        with mcaplog.McapLog(ctx.raw_path) as logf:
+            logf.log_json(
+                mcaplog.TOPIC_MEASUREMENT,
+                now_ns(),
+                {
+                    "id": ctx.measurement.id,
+                    "request": req.model_dump(mode="json"),
+                    "sweep": sweep.model_dump(),
+                    "config": public_config(cfg),
+                    "scanner_url": self.scanner_url,
+                    "motor_url": self.motor_url,
+                    "dialect": dialect,
+                    "time_base": "host CLOCK_MONOTONIC + epoch offset, ns",
+                },
+            )
+            logf.log_world_pose(now_ns(), cfg.calibration.world_from_rig)
+            recorder = SweepRecorder(cfg.calibration, logf, dialect)
+
+            def on_event(kind: str, data: dict[str, Any]) -> None:
+                logf.log_json(mcaplog.TOPIC_EVENT, now_ns(), {"kind": kind, **data})
+
+            metrics = ctx.metrics
+            scanner = self.scanner
+
+            def read_scan(timeout: float) -> tuple[Any, float, bytes | None]:
+                rec = scanner.next_record(timeout)
+                if metrics is not None:
+                    metrics.scans.inc()
+                return rec.scan, rec.host_time_s, rec.raw
+
+            ctx.progress(0.01, "approach")
+            try:
+                outcome = run_sweep(
+                    scanner,
+                    self.motor,
+                    recorder,
+                    plan,
+                    clock_ns=clock_ns,
+                    read_scan=read_scan,
+                    progress=ctx.progress,
+                    cancelled=lambda: ctx.cancelled,
+                    on_event=on_event,
+                )
+            except BaseException as exc:
+                state = "cancelled" if isinstance(exc, Cancelled) else "failed"
+                logf.log_json(
+                    mcaplog.TOPIC_RESULT, now_ns(), {"state": state, "reason": str(exc) or type(exc).__name__}
+                )
+                if metrics is not None:
+                    metrics.scans_missing.inc(recorder.gaps.missing)
+                raise
+            if metrics is not None:
+                metrics.scans_missing.inc(recorder.gaps.missing)
+            ctx.progress(0.86, "mapping")
+            try:
+                mapped, result = finish_measurement(recorder, cfg, req, sweep, outcome.t_start_ns, outcome.t_end_ns)
+            except (FitError, SweepError) as exc:
+                logf.log_json(mcaplog.TOPIC_RESULT, now_ns(), {"state": "failed", "reason": str(exc)})
+                raise
+            logf.log_cloud(now_ns(), mapped.points)
+            write_ply(ctx.cloud_path, mapped)
+            result["scanner_stats"] = outcome.scanner_stats
+            result["duration_s"] = outcome.duration_s
+            result["measurement_id"] = ctx.measurement.id
+            logf.log_json(mcaplog.TOPIC_RESULT, now_ns(), {"state": "done", "result": result})
+        ctx.progress(1.0, "done")
+        return mcaplog.json_safe(result)  # type: ignore[no-any-return]
+
+
+def build_service(config: RigConfig, open_rig: bool = True) -> tuple[Any, Rig]:
+    """The REST service for ``config`` with its rig (opened unless told otherwise)."""
+    from service.api import Service
+
+    rig = Rig(config)
+    if open_rig:
+        rig.open()
+    svc = Service(config, rig.measure, rig_info=rig.describe)
+    return svc, rig
