@@ -90,6 +90,17 @@ def wait_for(condition: Callable[[], bool], limit_s: float = 10.0) -> None:
         time.sleep(0.01)
 
 
+def close_and_drain(c: ScannerClient) -> list[Scan]:
+    """Close the client (its reader thread ends, so the stats are final) and take what was queued."""
+    c.close()
+    rest = []
+    while True:
+        try:
+            rest.append(c.next_scan(0.0))
+        except ScannerStateError:
+            return rest
+
+
 def lost_from_counters(scans: list[Scan]) -> int:
     counters = [s.scan_counter for s in scans]
     return sum((b - a) % 65536 - 1 for a, b in itertools.pairwise(counters))
@@ -345,15 +356,17 @@ def test_killed_connection_reconnects_and_the_gap_is_counted(
     before = [c.next_scan() for _ in range(3)]
     assert server.drop_clients() == 1
     after = [c.next_scan() for _ in range(5)]
+    assert c.connected and c.streaming
+    assert c.device_state().measuring
+    assert all(s.time_info is not None for s in after)
+    everything = before + after + close_and_drain(c)
     st = c.stats
     assert st.connection_losses == 1 and st.reconnects == 1
-    assert c.connected and c.streaming
     # >= 0.15 s away at 25 Hz: at least three scans were made meanwhile and never received
     assert st.gaps >= 1 and st.lost >= 3
-    assert st.lost == lost_from_counters(before + after)  # every lost scan accounted for
-    assert st.received == len(before) + len(after) and st.queue_drops == 0
+    assert st.lost == lost_from_counters(everything)  # every lost scan accounted for, none invented
+    assert st.received == len(everything) and st.queue_drops == 0
     assert server.connections == 2
-    assert c.device_state().measuring
 
 
 def test_device_reboot_restores_the_session(make_server: ServerFactory, clients: list[ScannerClient]) -> None:
@@ -365,19 +378,23 @@ def test_device_reboot_restores_the_session(make_server: ServerFactory, clients:
     c.start_measurement()
     c.run()
     c.start_streaming()
-    while (scan := c.next_scan()).scan_counter < 20:  # the counter after the reboot starts below this
-        assert scan.rssi is not None
+    first = [c.next_scan()]
+    while first[-1].scan_counter < 20:  # the counter after the reboot restarts below this
+        first.append(c.next_scan())
     admin = connect(server, clients, reconnect=False)
     admin.login()
     admin.request(Reboot(), RebootReply)  # the device answers, then drops every connection and reboots
     wait_for(lambda: c.stats.reconnects >= 1)
-    scans = [c.next_scan() for _ in range(3)]
+    later = [c.next_scan() for _ in range(3)]
+    everything = first + later + close_and_drain(c)
+    resets = [i for i in range(1, len(everything)) if everything[i].scan_counter < everything[i - 1].scan_counter]
+    assert len(resets) == 1
+    rebooted = everything[resets[0] :]
     # the restore logged in and wrote both configurations again: 50 Hz, RSSI and time are back
-    assert all(s.rssi is not None and s.time_info is not None and s.scan_frequency_hz == 50.0 for s in scans)
-    assert scans[0].scan_counter < 20
+    assert all(s.rssi is not None and s.time_info is not None and s.scan_frequency_hz == 50.0 for s in rebooted)
     st = c.stats
-    assert st.device_restarts == 1  # the scan counter restarted: not reported as lost scans
-    assert st.lost == 0
+    assert st.device_restarts == 1  # the counter restart is not reported as lost scans
+    assert st.lost == lost_from_counters(everything[: resets[0]]) + lost_from_counters(rebooted)
 
 
 def test_without_reconnect_a_lost_link_is_an_error(make_server: ServerFactory, clients: list[ScannerClient]) -> None:
@@ -426,13 +443,7 @@ def test_queue_overflow_drops_oldest_and_counts(make_server: ServerFactory, clie
     c = connect(server, clients, queue_size=3)
     c.start_streaming()
     wait_for(lambda: c.stats.queue_drops >= 5)
-    c.stop_streaming()
-    kept = []
-    while True:
-        try:
-            kept.append(c.next_scan(0.5))
-        except ScannerStateError:
-            break
+    kept = close_and_drain(c)
     st = c.stats
     assert st.received == st.queue_drops + len(kept)
     assert 1 <= len(kept) <= 3 and st.lost == 0
