@@ -22,7 +22,8 @@ heartbeat, maps TPDO1 = statusword + position actual and TPDO2 = velocity actual
 error (both transmission type 1, every SYNC), writes the configured windows and limits, starts
 the node (Operational), and runs its own SYNC producer thread. Every TPDO1 is stamped with the
 host time of the SYNC it answers (paired first-in first-out, so a TPDO that arrives after the
-next SYNC still gets its own SYNC's time); a sample is emitted when the matching TPDO2 arrives.
+next SYNC still gets its own SYNC's time); a sample is emitted when the matching TPDO2 arrives,
+and only then do waits on the statusword see it (so a wait that returned has its sample stored).
 The controlword is written by SDO (each command confirmed by the drive). ``close()`` stops the
 SYNC and the watchdog and releases the bus; it leaves the drive's state alone.
 """
@@ -342,9 +343,6 @@ class Cia402CanMotor(Cia402Motor):
         pending, self._pending_tpdo1 = self._pending_tpdo1, (t, statusword, position)
         if pending is not None:  # its TPDO2 never came
             self._emit(pending, math.nan)
-        with self._sw_cond:
-            self._last_sw = (t, statusword)
-            self._sw_cond.notify_all()
 
     def _on_tpdo2(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if len(data) < 4:
@@ -358,6 +356,9 @@ class Cia402CanMotor(Cia402Motor):
         t, statusword, position = tpdo1
         c = self.config
         self._push_sample(MotorSample(t, c.counts_to_rad(position), c.counts_to_rad(velocity_counts), statusword))
+        with self._sw_cond:  # waiters see a statusword only once its sample is in the buffer
+            self._last_sw = (t, statusword)
+            self._sw_cond.notify_all()
 
     def _on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if not data:
