@@ -473,7 +473,7 @@ def canopen_object_dictionary() -> canopen.ObjectDictionary:
         var = ODVariable(spec.name, spec.index, spec.subindex)
         var.data_type = spec.dtype.code
         var.access_type = spec.access.value
-        var.default = spec.default
+        var.default = spec.default  # type: ignore[assignment]  # canopen annotates int but stores strings too
         return var
 
     for index, specs in sorted(by_index.items()):
