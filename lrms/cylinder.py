@@ -654,7 +654,7 @@ def detect_plane(
 
     _Plane.normal_weight = normal_weight if normals is not None else 0.0
     try:
-        model, mask = ransac(data, _Plane, 3, threshold, max_trials=500, min_trials=100, rng=rng, score_size=5000)
+        model, mask = ransac(data, _Plane, 3, threshold, max_trials=1500, min_trials=400, rng=rng, score_size=5000)
     except FitError:
         return None
     if np.count_nonzero(mask) < min_share * pts.shape[0]:
@@ -674,14 +674,7 @@ def detect_cylinder(
         raise FitError(f"too few points to detect a cylinder: {n} (need {opt.min_inliers})")
     sub = pts[g.choice(n, size=opt.sample_size, replace=False)] if n > opt.sample_size else pts
     normals = estimate_normals(sub, opt.normal_k)
-    plane: tuple[FloatArray, float] | None = None
-    keep = np.ones(sub.shape[0], dtype=bool)
-    found = detect_plane(sub, opt.plane_threshold, g, opt.plane_min_share, normals, opt.plane_normal_weight)
-    if found is not None:
-        pn, po, pmask = found
-        plane = (pn, po)
-        keep = ~pmask
-    data = np.hstack([sub[keep], normals[keep]])
+    data = np.hstack([sub, normals])
 
     class _Model(CylinderModel):
         normal_weight = opt.normal_weight
@@ -700,7 +693,42 @@ def detect_cylinder(
         rng=g,
     )
     assert model.cylinder is not None
-    return model.cylinder, plane
+    return model.cylinder, support_plane(pts, model.cylinder, opt)
+
+
+def support_plane(pts: FloatArray, cyl: Cylinder, opt: DetectOptions) -> tuple[FloatArray, float] | None:
+    """The plane the part stands on: perpendicular to the axis (within 10 deg), the most
+    populated such slab among the points off the cylinder, refined by total least squares.
+
+    (A free plane RANSAC is unreliable here: at the rig's grazing view of a table the points
+    come in sparse scan lines, so their neighbourhood normals are ill-defined, and the front of
+    the part is as flat as the table within the range noise.)
+    """
+    off = pts[np.abs(cyl.surface_distance(pts)) > opt.threshold]
+    if off.shape[0] < max(opt.min_inliers, opt.plane_min_share * pts.shape[0]):
+        return None
+    s = off @ cyl.direction
+    width = opt.plane_threshold
+    edges = np.arange(s.min(), s.max() + 2 * width, width)
+    if edges.size < 2:
+        return None
+    counts, edges = np.histogram(s, bins=edges)
+    pair = counts[:-1] + counts[1:] if counts.size > 1 else counts
+    i = int(np.argmax(pair))
+    centre = edges[i + 1] if counts.size > 1 else 0.5 * (edges[0] + edges[1])
+    near = off[np.abs(s - centre) < width]
+    if near.shape[0] < max(opt.min_inliers, opt.plane_min_share * pts.shape[0]):
+        return None
+    model = PlaneModel()
+    for _ in range(2):
+        if not model.estimate(near):
+            return None
+        near = off[model.residuals(off) < width]
+        if near.shape[0] < 3:
+            return None
+    if abs(float(model.normal @ cyl.direction)) < np.cos(np.deg2rad(10.0)):
+        return None
+    return model.normal, model.offset
 
 
 def _refine_from(
@@ -839,7 +867,7 @@ def fit_cylinder(
     if plane is not None:
         pn, po = plane
         denom = float(pn @ best.cylinder.direction)
-        if abs(denom) > 1e-6:
+        if abs(denom) > 0.9:  # the support plane: nearly perpendicular to the axis
             s = (po - float(pn @ best.cylinder.point)) / denom
             base = best.cylinder.point + s * best.cylinder.direction
     return CylinderFit(
