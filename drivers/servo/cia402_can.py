@@ -8,7 +8,7 @@ other interface the host part (or the path) is the channel. Options:
 
 =================  =========  ====================================================================
 ``node``           1          CANopen node id of the drive (1..127)
-``sync_hz``        100        SYNC produced by this driver (10..1000 Hz); one sample per SYNC
+``sync_hz``        200        SYNC produced by this driver (10..1000 Hz); one sample per SYNC
 ``heartbeat_ms``   50         heartbeat period written to the drive's 0x1017 (0 = no watchdog)
 ``heartbeat_lost`` 3.5        the drive is lost after this many heartbeat periods of silence
 ``sdo_timeout``    0.5        seconds to wait for each SDO response
@@ -74,7 +74,7 @@ class NotCia402Device(ServoError):
 @dataclass(frozen=True)
 class CanUrlOptions:
     node: int = 1
-    sync_hz: float = 100.0
+    sync_hz: float = 200.0
     heartbeat_ms: int = 50
     heartbeat_lost: float = 3.5
     sdo_timeout: float = 0.5
@@ -94,7 +94,7 @@ def read_url_options(url: DeviceURL) -> CanUrlOptions:
     """The driver options of a ``canopen+...://`` (or ``sim://``) URL (marks them used)."""
     return CanUrlOptions(
         node=url.get_int("node", 1, lo=1, hi=127),
-        sync_hz=url.get_float("sync_hz", 100.0, lo=10.0, hi=1000.0),
+        sync_hz=url.get_float("sync_hz", 200.0, lo=10.0, hi=1000.0),
         heartbeat_ms=url.get_int("heartbeat_ms", 50, lo=0, hi=65535),
         heartbeat_lost=url.get_float("heartbeat_lost", 3.5, lo=1.5, hi=100.0),
         sdo_timeout=url.get_float("sdo_timeout", 0.5, lo=0.01, hi=30.0),

@@ -85,7 +85,7 @@ def test_enable_move_and_samples(motor: Cia402CanMotor) -> None:
 
 
 def test_at_least_100_samples_per_second_counted_on_their_stamps() -> None:
-    with open_device("motor", "sim://?node=7&sync_hz=200") as m:
+    with open_device("motor", "sim://?node=7") as m:  # default SYNC rate
         assert isinstance(m, Cia402CanMotor)
         start = m.sample_count
         wait_for(lambda: m.sample_count - start >= 260, timeout=10.0)
