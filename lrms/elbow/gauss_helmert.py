@@ -49,6 +49,8 @@ HUBER_K = 2.0
 #: AXIS_GATE_MAX tube radii) are not used; only sharp elbows have surface there.
 AXIS_GATE = 0.0
 AXIS_GATE_MAX = 0.5
+#: A step the cost refuses is taken as convergence when below this fraction of each standard deviation.
+STALL_FRACTION = 0.1
 #: Converged once every parameter update is below this fraction of its standard deviation.
 PRECISION_FRACTION = 0.01
 
@@ -62,8 +64,9 @@ def param_names(ratio: float | None, flange: bool) -> list[str]:
     return names
 
 
-def design_matrices(points: ArrayLike, params: ElbowParams, ratio: float | None = None,
-                    flange: bool | None = None) -> tuple[FloatArray, FloatArray, FloatArray]:
+def design_matrices(
+    points: ArrayLike, params: ElbowParams, ratio: float | None = None, flange: bool | None = None
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Condition values ``f`` (n,), design matrix ``A`` (n, u) and ``B`` rows (n, 3), analytic.
 
     ``A`` is taken with respect to the internal unknowns of :func:`param_names` at ``w = 0``.
@@ -108,8 +111,9 @@ def apply_update(params: ElbowParams, delta: ArrayLike, ratio: float | None, fla
         a = ratio * dd
         k = 7
     df = params.Df + d[k] if flange and params.Df is not None else params.Df
-    return replace(params, center=params.center + d[:3], rot=rot, A=float(a), D=float(dd),
-                   Df=None if df is None else float(df))
+    return replace(
+        params, center=params.center + d[:3], rot=rot, A=float(a), D=float(dd), Df=None if df is None else float(df)
+    )
 
 
 @dataclass(frozen=True)
@@ -197,9 +201,19 @@ def _check_cov(cov: ArrayLike | None, n: int) -> FloatArray | None:
     return c
 
 
-def fit_elbow(points: ArrayLike, init: ElbowParams, *, ratio: float | None = None, flange: bool | None = None,
-              cov: ArrayLike | None = None, max_iter: int = 60, tol: float = 1e-9,
-              robust_start: bool = True, axis_gate: float = AXIS_GATE) -> ElbowFit:
+def fit_elbow(
+    points: ArrayLike,
+    init: ElbowParams,
+    *,
+    ratio: float | None = None,
+    flange: bool | None = None,
+    cov: ArrayLike | None = None,
+    max_iter: int = 60,
+    tol: float = 1e-9,
+    robust_start: bool = True,
+    robust_only: bool = False,
+    axis_gate: float = AXIS_GATE,
+) -> ElbowFit:
     """Adjust the elbow model to ``points`` (n, 3) from the initial values ``init``.
 
     ``ratio``: fix ``A = ratio * D`` (e.g. 0.5, 1, 1.5) or ``None`` to estimate ``A`` and ``D``.
@@ -208,7 +222,9 @@ def fit_elbow(points: ArrayLike, init: ElbowParams, *, ratio: float | None = Non
     all points have unit cofactor and ``sigma0`` is the residual standard deviation in metres.
     ``robust_start``: begin with Huber-weighted iterations (points far from the current model, e.g.
     flange points handed to the bend by a slightly wrong start, count less) and finish with plain
-    least squares; the result is the least-squares solution either way.
+    least squares; the result is the least-squares solution either way. ``robust_only`` stops
+    after the Huber iterations (an M-estimate, for trimming outliers before the real fit; its
+    statistics are computed as for least squares and are only indicative).
     ``axis_gate``: points closer to the torus axis than ``axis_gate`` robust residual standard
     deviations (but at most ``AXIS_GATE_MAX`` tube radii) are left out; 0 keeps all. Only sharp
     elbows (``A`` near ``D/2``) have surface there: the horn torus pinches to its axis, the
@@ -243,6 +259,7 @@ def fit_elbow(points: ArrayLike, init: ElbowParams, *, ratio: float | None = Non
     it = 0
     vpv = 0.0
     use = np.ones(n, dtype=bool)
+    hub_scale = math.inf
     for it in range(1, max_iter + 1):
         f0, amat, b = design_matrices(l0, params, ratio, has_flange)
         w = f0 + np.einsum("ij,ij->i", b, pts - l0)
@@ -260,7 +277,9 @@ def fit_elbow(points: ArrayLike, init: ElbowParams, *, ratio: float | None = Non
         hub = math.inf
         wt = np.where(use, 1.0 / mm, 0.0)
         if robust:
-            hub = HUBER_K * max(sig_r, 1e-12)
+            # the scale may shrink but never grow: outliers must not inflate their own threshold
+            hub_scale = min(hub_scale, HUBER_K * max(sig_r, 1e-12))
+            hub = hub_scale
             wt = wt * np.minimum(1.0, hub / np.maximum(z, 1e-300))
         normal = amat.T @ (amat * wt[:, None])
         rhs = amat.T @ (wt * w)
@@ -270,8 +289,9 @@ def fit_elbow(points: ArrayLike, init: ElbowParams, *, ratio: float | None = Non
                 raise np.linalg.LinAlgError("ill-conditioned")
             delta = -np.linalg.solve(normal, rhs)
         except np.linalg.LinAlgError as exc:
-            raise FitError("singular normal equations: the points do not determine the elbow "
-                           "(too little coverage or not an elbow)") from exc
+            raise FitError(
+                "singular normal equations: the points do not determine the elbow (too little coverage or not an elbow)"
+            ) from exc
         cost0 = _cost((fo / sqm)[use], hub)
         floor = n * (1e-12 * scale) ** 2  # round-off level of the cost
         step = 1.0
@@ -283,6 +303,17 @@ def fit_elbow(points: ArrayLike, init: ElbowParams, *, ratio: float | None = Non
             step *= 0.5
             rigorous = False
         else:
+            n_use = int(np.count_nonzero(use))
+            sd = np.sqrt(np.clip(np.diag(np.linalg.inv(normal)), 0.0, None) * cost0 / max(n_use - u, 1))
+            if np.all(np.abs(delta) <= STALL_FRACTION * sd):
+                # the cost is piecewise smooth (portion boundaries): a step this far below the
+                # precision that it cannot take means we are at the minimum
+                vpv = float(np.sum((fo / sqm)[use] ** 2))
+                if robust and not robust_only:
+                    robust, l0 = False, pts.copy()
+                    continue
+                converged = True
+                break
             if robust:  # the robust start is stuck: carry on with plain least squares
                 robust, l0 = False, pts.copy()
                 continue
@@ -299,6 +330,9 @@ def fit_elbow(points: ArrayLike, init: ElbowParams, *, ratio: float | None = Non
         n_use = int(np.count_nonzero(use))
         sd = np.sqrt(np.clip(np.diag(np.linalg.inv(normal)), 0.0, None) * cost0 / max(n_use - u, 1))
         done = done or bool(it > 1 and np.all(d <= PRECISION_FRACTION * sd))
+        if done and robust and robust_only:
+            converged = True
+            break
         if done and robust:
             robust, l0 = False, pts.copy()  # robust start finished: polish with plain least squares
         elif done:
@@ -318,8 +352,18 @@ def fit_elbow(points: ArrayLike, init: ElbowParams, *, ratio: float | None = Non
     except np.linalg.LinAlgError as exc:
         raise FitError("singular normal matrix at the solution") from exc
     covx = np.asarray(s0sq * qxx, dtype=np.float64)
-    fit = ElbowFit(params=params, cov=covx, names=names, sigma0=math.sqrt(s0sq), iterations=it, converged=True,
-                   n=n_use, redundancy=redundancy, residuals=np.asarray(f_fin), ratio=ratio)
+    fit = ElbowFit(
+        params=params,
+        cov=covx,
+        names=names,
+        sigma0=math.sqrt(s0sq),
+        iterations=it,
+        converged=True,
+        n=n_use,
+        redundancy=redundancy,
+        residuals=np.asarray(f_fin),
+        ratio=ratio,
+    )
     return replace(fit, sigmas=derived_sigmas(fit))
 
 

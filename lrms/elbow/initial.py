@@ -1,7 +1,10 @@
 """Automatic initial values for the elbow adjustment (seed 000, Section 2.2.2).
 
 1. **The two connections.** The cloud's two extreme points (the point farthest from the centroid,
-   then the point farthest from that one) lie on the rims of the two pipe ends.
+   then the point farthest from that one) lie on the rims of the two pipe ends. In case
+   something else sticks out farther (a bracket's rod), two more pairs that avoid one of those
+   points are tried as well, and the candidate whose model fits the points best (trimmed mean
+   squared distance) is kept.
 2. **Slice cylinders.** Near each end a slice of points is cut and a cylinder fitted: the axis
    direction from the patch normals (the direction most perpendicular to all of them, normals by
    :func:`lrms.cylinder.estimate_normals`), the axis point and radius from an algebraic circle fit
@@ -89,8 +92,16 @@ def _slice_cylinder(patch: FloatArray, rng: np.random.Generator, size: float) ->
     normals = estimate_normals(sub, k=min(30, sub.shape[0]))
     thr = RANSAC_THRESHOLD * size
     try:
-        model, _ = ransac(np.hstack([sub, normals]), CylinderModel, 2, thr, max_trials=300,
-                          min_inliers=max(10, sub.shape[0] // 10), refine=False, rng=rng)
+        model, _ = ransac(
+            np.hstack([sub, normals]),
+            CylinderModel,
+            2,
+            thr,
+            max_trials=300,
+            min_inliers=max(10, sub.shape[0] // 10),
+            refine=False,
+            rng=rng,
+        )
     except FitError as exc:
         raise FitError(f"no pipe found near an end of the cloud ({exc})") from exc
     assert model.cylinder is not None
@@ -104,8 +115,9 @@ def _slice_cylinder(patch: FloatArray, rng: np.random.Generator, size: float) ->
         return cyl
 
 
-def _end_cylinder(pts: FloatArray, end: FloatArray, centroid: FloatArray, size: float,
-                  rng: np.random.Generator, flange: bool) -> Cylinder:
+def _end_cylinder(
+    pts: FloatArray, end: FloatArray, centroid: FloatArray, size: float, rng: np.random.Generator, flange: bool
+) -> Cylinder:
     """Cylinder fitted to the slice of points at one pipe end."""
     patch = pts[np.linalg.norm(pts - end, axis=1) < (FLANGE_PATCH if flange else PATCH) * size]
     slice_len = FLANGE_SLICE if flange else SLICE
@@ -163,8 +175,13 @@ def _sizes_from_pose(pts: FloatArray, p: ElbowParams, flange: bool) -> ElbowPara
     return replace(p, D=2 * float(np.median(ev.s)))
 
 
-def initial_values(points: ArrayLike, degree: float | None = None, ratio: float | None = None,
-                   flange: bool = False, rng: np.random.Generator | None = None) -> ElbowParams:
+def initial_values(
+    points: ArrayLike,
+    degree: float | None = None,
+    ratio: float | None = None,
+    flange: bool = False,
+    rng: np.random.Generator | None = None,
+) -> ElbowParams:
     """Initial elbow parameters from the cloud alone (see the module docstring).
 
     ``degree`` (rad) fixes the joint degree; ``None`` takes the angle between the two end axes
@@ -177,11 +194,61 @@ def initial_values(points: ArrayLike, degree: float | None = None, ratio: float 
         raise FitError("points contain NaN or infinite coordinates")
     g = np.random.default_rng(12345) if rng is None else rng
     centroid = pts.mean(axis=0)
-    e1 = pts[int(np.argmax(np.linalg.norm(pts - centroid, axis=1)))]
-    e2 = pts[int(np.argmax(np.linalg.norm(pts - e1, axis=1)))]
+    sample = pts if pts.shape[0] <= COST_SAMPLE else pts[g.choice(pts.shape[0], COST_SAMPLE, replace=False)]
+    best: ElbowParams | None = None
+    best_cost = math.inf
+    errors: list[str] = []
+    for e1, e2 in _end_candidates(pts, centroid):
+        try:
+            cand = _from_ends(pts, sample, centroid, e1, e2, degree, ratio, flange, g)
+        except FitError as exc:
+            errors.append(str(exc))
+            continue
+        cost = _trimmed_cost(sample, cand) / cand.D**2
+        if cost < best_cost:
+            best, best_cost = cand, cost
+    if best is None:
+        raise FitError(errors[0] if errors else "no elbow found")
+    return best
+
+
+def _end_candidates(pts: FloatArray, centroid: FloatArray) -> list[tuple[FloatArray, FloatArray]]:
+    """Pairs of points that may be the two pipe ends: the farthest pair found from the centroid,
+    and pairs that avoid one of its points (in case something else, e.g. a bracket, sticks out)."""
+
+    def far(ref: FloatArray, mask: NDArray[np.bool_] | None = None) -> FloatArray:
+        d = np.linalg.norm(pts - ref, axis=1)
+        if mask is not None:
+            d = np.where(mask, d, -1.0)
+        return np.asarray(pts[int(np.argmax(d))])
+
+    e1 = far(centroid)
+    e2 = far(e1)
     size = float(np.linalg.norm(e2 - e1))
     if size <= 0:
         raise FitError("all points coincide")
+    out = [(e1, e2)]
+    for drop, keep in ((e1, e2), (e2, e1)):
+        mask = np.linalg.norm(pts - drop, axis=1) > 0.4 * size
+        if np.count_nonzero(mask) > 0.5 * pts.shape[0]:
+            e3 = far(keep, mask)
+            out.append((keep, e3))
+    return out
+
+
+def _from_ends(
+    pts: FloatArray,
+    sample: FloatArray,
+    centroid: FloatArray,
+    e1: FloatArray,
+    e2: FloatArray,
+    degree: float | None,
+    ratio: float | None,
+    flange: bool,
+    g: np.random.Generator,
+) -> ElbowParams:
+    """Initial values from two given end points (steps 2-4 of the module docstring)."""
+    size = float(np.linalg.norm(e2 - e1))
     c1 = _end_cylinder(pts, e1, centroid, size, g, flange)
     c2 = _end_cylinder(pts, e2, centroid, size, g, flange)
     u1, u2 = c1.direction, c2.direction
@@ -215,19 +282,19 @@ def initial_values(points: ArrayLike, degree: float | None = None, ratio: float 
         o = corner - a * rot_[2] + a * math.tan(degree / 2) * rot_[0]
         return ElbowParams(o, rot_, a, dia, float(degree), df)
 
-    sample = pts if pts.shape[0] <= COST_SAMPLE else pts[g.choice(pts.shape[0], COST_SAMPLE, replace=False)]
     p = params_for(a0)
     if flange:
         p = _sizes_from_pose(sample, p, True)
     if ratio is None:
-        a_best = _golden(lambda a: _trimmed_cost(sample, replace(params_for(a), D=p.D, Df=p.Df)), 0.5 * p.D,
-                         2.0 * p.D)
+        a_best = _golden(lambda a: _trimmed_cost(sample, replace(params_for(a), D=p.D, Df=p.Df)), 0.5 * p.D, 2.0 * p.D)
         p = replace(params_for(max(a_best, 0.45 * p.D)), D=p.D, Df=p.Df)
     # golden-section refinement of the rotation about each model axis (pivot: the corner)
     for _ in range(2):
         for axis in range(3):
+
             def cost(angle: float, axis: int = axis, base: ElbowParams = p) -> float:
                 return _trimmed_cost(sample, _rotated(base, axis, angle, corner, ratio))
+
             best = _golden(cost, -0.15, 0.15)
             p = _rotated(p, axis, best, corner, ratio)
         p = _sizes_from_pose(sample, p, flange)

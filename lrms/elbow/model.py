@@ -125,12 +125,13 @@ def euler_jacobian(omega: float, psi: float, kappa: float) -> FloatArray:
     ``s_j``.
     """
     ro, rp, rk = r1(omega), r3(psi), r2(kappa)
-    d1 = np.array([[0.0, 0.0, 0.0], [0.0, -math.sin(omega), math.cos(omega)],
-                   [0.0, -math.cos(omega), -math.sin(omega)]])
-    d3 = np.array([[-math.sin(psi), math.cos(psi), 0.0], [-math.cos(psi), -math.sin(psi), 0.0],
-                   [0.0, 0.0, 0.0]])
-    d2 = np.array([[-math.sin(kappa), 0.0, -math.cos(kappa)], [0.0, 0.0, 0.0],
-                   [math.cos(kappa), 0.0, -math.sin(kappa)]])
+    d1 = np.array(
+        [[0.0, 0.0, 0.0], [0.0, -math.sin(omega), math.cos(omega)], [0.0, -math.cos(omega), -math.sin(omega)]]
+    )
+    d3 = np.array([[-math.sin(psi), math.cos(psi), 0.0], [-math.cos(psi), -math.sin(psi), 0.0], [0.0, 0.0, 0.0]])
+    d2 = np.array(
+        [[-math.sin(kappa), 0.0, -math.cos(kappa)], [0.0, 0.0, 0.0], [math.cos(kappa), 0.0, -math.sin(kappa)]]
+    )
     rot = rk @ rp @ ro
     derivs = (rk @ rp @ d1, rk @ d3 @ ro, d2 @ rp @ ro)
     cols = []
@@ -157,10 +158,24 @@ class ElbowParams:
     Df: float | None = None
 
     @staticmethod
-    def from_angles(center: ArrayLike, omega: float, psi: float, kappa: float, A: float, D: float,
-                    degree: float, Df: float | None = None) -> ElbowParams:
-        return ElbowParams(np.asarray(center, dtype=np.float64).reshape(3), rotation_matrix(omega, psi, kappa),
-                           float(A), float(D), float(degree), None if Df is None else float(Df))
+    def from_angles(
+        center: ArrayLike,
+        omega: float,
+        psi: float,
+        kappa: float,
+        A: float,
+        D: float,
+        degree: float,
+        Df: float | None = None,
+    ) -> ElbowParams:
+        return ElbowParams(
+            np.asarray(center, dtype=np.float64).reshape(3),
+            rotation_matrix(omega, psi, kappa),
+            float(A),
+            float(D),
+            float(degree),
+            None if Df is None else float(Df),
+        )
 
     @property
     def angles(self) -> tuple[float, float, float]:

@@ -17,6 +17,8 @@ FloatArray = NDArray[np.float64]
 
 #: Fits whose a posteriori sigma exceeds this fraction of D are not elbows.
 MAX_SIGMA0_FRACTION = 0.15
+#: Rounds of trimming at most.
+TRIM_ROUNDS = 8
 #: The end leg must be this much longer than the start leg before the two are swapped.
 LEG_MARGIN = 1.05
 
@@ -29,8 +31,11 @@ def leg_extents(points: ArrayLike, params: ElbowParams) -> tuple[float, float, i
     start = m[ev.portion == START, 0]
     end_dir = np.array([-math.sin(theta0), 0.0, math.cos(theta0)])
     end = m[ev.portion == END] @ end_dir
-    return (float(start.max()) if start.size else 0.0, float(end.max()) if end.size else 0.0,
-            int(np.count_nonzero(ev.portion == BEND)))
+    return (
+        float(start.max()) if start.size else 0.0,
+        float(end.max()) if end.size else 0.0,
+        int(np.count_nonzero(ev.portion == BEND)),
+    )
 
 
 def canonical(points: ArrayLike, params: ElbowParams) -> ElbowParams:
@@ -43,15 +48,25 @@ def canonical(points: ArrayLike, params: ElbowParams) -> ElbowParams:
     return params.flipped() if e > LEG_MARGIN * s else params
 
 
-def fit_auto(points: ArrayLike, *, degree: float | None = None, ratio: float | None = None, flange: bool = False,
-             cov: ArrayLike | None = None, init: ElbowParams | None = None, trim: float | None = None,
-             max_iter: int = 60, rng: np.random.Generator | None = None) -> ElbowFit:
+def fit_auto(
+    points: ArrayLike,
+    *,
+    degree: float | None = None,
+    ratio: float | None = None,
+    flange: bool = False,
+    cov: ArrayLike | None = None,
+    init: ElbowParams | None = None,
+    trim: float | None = None,
+    max_iter: int = 60,
+    rng: np.random.Generator | None = None,
+) -> ElbowFit:
     """Fit an elbow to ``points`` without manual start values.
 
     ``degree`` (rad): the joint degree (``None``: estimated from the two pipe ends, snapped to 45
     or 90 deg when close); ``ratio``: ``A/D`` fixed, or ``None`` (free); ``flange``: fit ``Df``.
-    ``trim``: drop points farther than ``trim * sigma0`` from the fitted surface and refit (up to
-    three rounds; the kept rows are in ``fit.inliers``). Raises :class:`FitError` when no elbow
+    ``trim``: drop points farther than ``trim`` robust standard deviations (1.4826 times the
+    median absolute residual of the points kept so far) from the fitted surface and refit, until
+    the kept set settles (at most ``TRIM_ROUNDS`` rounds; the kept rows are in ``fit.inliers``). Raises :class:`FitError` when no elbow
     is found or the adjustment fails; a fit whose residual spread exceeds 15 % of ``D`` is
     rejected as "not an elbow".
     """
@@ -60,33 +75,49 @@ def fit_auto(points: ArrayLike, *, degree: float | None = None, ratio: float | N
     if init is not None and degree is not None:
         start = replace(start, degree=degree)
     cv = None if cov is None else np.asarray(cov, dtype=np.float64)
-    fit = fit_elbow(pts, start, ratio=ratio, flange=flange, cov=cv, max_iter=max_iter)
     keep = np.ones(pts.shape[0], dtype=bool)
-    if trim is not None:
+    if trim is None:
+        fit = fit_elbow(pts, start, ratio=ratio, flange=flange, cov=cv, max_iter=max_iter)
+    else:
         if trim <= 0:
             raise FitError(f"trim must be > 0 (in sigma0), got {trim}")
-        for _ in range(3):
-            res = np.abs(fit.residuals) if keep.all() else np.abs(_residuals(pts, fit.params))
-            sig = fit.sigma0 * (1.0 if cv is None else float(np.sqrt(np.median(cv if cv.ndim == 1 else
-                                                                                 np.trace(cv, axis1=1, axis2=2) / 3))))
+        # trimmed least squares from the start values: the points near the starting surface,
+        # then (after each fit) the points within trim * sigma0 of the fitted surface
+        params = start
+        res = np.abs(_residuals(pts, params))
+        sig = 1.4826 * float(np.median(res))
+        for rnd in range(TRIM_ROUNDS):
             new_keep = res < trim * sig
-            if np.array_equal(new_keep, keep):
+            if np.count_nonzero(new_keep) < 30:
+                raise FitError("no elbow: too few points lie near the fitted surface")
+            if np.array_equal(new_keep, keep) and rnd > 0:
                 break
             keep = new_keep
-            sub_cov = None if cv is None else cv[keep]
-            fit = fit_elbow(pts[keep], fit.params, ratio=ratio, flange=flange, cov=sub_cov, max_iter=max_iter)
+            fit = fit_elbow(
+                pts[keep], params, ratio=ratio, flange=flange, cov=None if cv is None else cv[keep], max_iter=max_iter
+            )
+            params = fit.params
+            res = np.abs(_residuals(pts, params))
+            # robust spread of the kept points' residuals (sigma0 itself is inflated by any
+            # outliers still kept), in units of the point standard deviation when cov is given
+            sig = 1.4826 * float(np.median(res[keep]))
     sub = pts[keep]
     can = canonical(sub, fit.params)
     if can is not fit.params:
         fit = fit_elbow(sub, can, ratio=ratio, flange=flange, cov=None if cv is None else cv[keep], max_iter=max_iter)
     if cv is None and fit.sigma0 > MAX_SIGMA0_FRACTION * fit.params.D:
-        raise FitError(f"no elbow: residual spread {fit.sigma0 * 1e3:.1f} mm is {fit.sigma0 / fit.params.D:.0%} of "
-                       f"the fitted diameter {fit.params.D * 1e3:.1f} mm")
+        raise FitError(
+            f"no elbow: residual spread {fit.sigma0 * 1e3:.1f} mm is {fit.sigma0 / fit.params.D:.0%} of "
+            f"the fitted diameter {fit.params.D * 1e3:.1f} mm"
+        )
     _, _, nb = leg_extents(sub, fit.params)
     if nb < 10:
         raise FitError("no elbow: hardly any points lie on the bend of the fitted model")
-    return replace(fit, inliers=keep if trim is not None else None,
-                   residuals=_residuals(pts, fit.params) if trim is not None else fit.residuals)
+    return replace(
+        fit,
+        inliers=keep if trim is not None else None,
+        residuals=_residuals(pts, fit.params) if trim is not None else fit.residuals,
+    )
 
 
 def _residuals(pts: FloatArray, p: ElbowParams) -> FloatArray:
