@@ -98,11 +98,14 @@ def fit_cylinder_result(
         mc = {"low_m": m.low, "high_m": m.high, "std_m": m.std, "coverage": m.coverage, "n_failed": m.n_failed}
     cyl = result.cylinder
     rot = cal.world_from_rig[:3, :3]
+    direction = rot @ cyl.direction
+    if direction[int(np.argmax(np.abs(direction)))] < 0:  # an axis has no sign: report it canonically
+        direction = -direction
     return {
         "target": "cylinder",
         "diameter_m": float(result.diameter),
         "axis_point_m": _vec(cal.to_world(cyl.point)),
-        "axis_direction": _vec(rot @ cyl.direction),
+        "axis_direction": _vec(direction),
         "rmse_m": float(result.rmse),
         "n_inliers": int(result.n_inliers),
         "chi2_dof": float(result.chi2_dof),

@@ -1,0 +1,113 @@
+"""Re-run a logged measurement offline: decode the raw telegrams, map, fit, compare.
+
+The live pipeline and this one share :class:`service.sweep.SweepRecorder` and
+:func:`service.rig.finish_measurement`, and the log keeps every input with its integer-ns host
+time, so a replay of a complete log reproduces the stored result. A log cut short by a crash
+replays up to where it ends (its sweep may be incomplete; the fit then says so).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from drivers.lms100.errors import CoLaError
+from drivers.lms100.messages import ScanDataEvent, ScanDataReply
+from drivers.lms100.protocol import CoLaConnection
+from service import mcaplog
+from service.config import parse_config
+from service.errors import ServiceError
+from service.models import MeasurementRequest, ResolvedSweep
+from service.sweep import SweepRecorder
+
+
+class ReplayError(ServiceError):
+    pass
+
+
+def replay(path: str | Path) -> dict[str, Any]:
+    """Replay ``path``; returns ``{"result", "stored", "status", "reproduced", "max_abs_diff"}``."""
+    from service.rig import finish_measurement
+
+    status = mcaplog.LogReadStatus()
+    meta: dict[str, Any] | None = None
+    stored: dict[str, Any] | None = None
+    t_start: int | None = None
+    t_end: int | None = None
+    recorder: SweepRecorder | None = None
+    codec: CoLaConnection | None = None
+    bad = 0
+    for msg in mcaplog.iter_log(path, status):
+        if msg.topic == mcaplog.TOPIC_MEASUREMENT:
+            meta = msg.decode()
+            cfg = parse_config(meta["config"], source=f"{path} (logged configuration)")
+            recorder = SweepRecorder(cfg.calibration, None, meta["dialect"])
+            codec = CoLaConnection(meta["dialect"], role="client")
+        elif recorder is None or codec is None:
+            continue
+        elif msg.topic == mcaplog.TOPIC_TELEGRAM:
+            codec.receive_data(msg.data)
+            try:
+                decoded = codec.next_message()
+            except CoLaError:
+                bad += 1
+                continue
+            if isinstance(decoded, ScanDataEvent | ScanDataReply):
+                recorder.add_scan(decoded.scan, msg.log_time_ns, None)
+        elif msg.topic == mcaplog.TOPIC_MOTOR:
+            js = msg.decode()
+            t_ns = js.timestamp.seconds * 1_000_000_000 + js.timestamp.nanos
+            for j in js.joints:
+                recorder.add_motor(t_ns, j.position, j.velocity)
+        elif msg.topic == mcaplog.TOPIC_EVENT:
+            ev = msg.decode()
+            if ev.get("kind") == "sweep_start":
+                t_start = int(ev["t_ns"])
+            elif ev.get("kind") == "sweep_end":
+                t_end = int(ev["t_ns"])
+        elif msg.topic == mcaplog.TOPIC_RESULT:
+            stored = msg.decode()
+    if meta is None or recorder is None:
+        raise ReplayError(f"{path} has no /lrms/measurement record: not a measurement log")
+    if t_start is None:
+        raise ReplayError(f"{path}: the sweep never started (log ends before the sweep_start event)")
+    cfg = parse_config(meta["config"], source=f"{path} (logged configuration)")
+    request = MeasurementRequest.model_validate(meta["request"])
+    sweep = ResolvedSweep.model_validate(meta["sweep"])
+    _, result = finish_measurement(recorder, cfg, request, sweep, t_start, t_end)
+    result = mcaplog.json_safe(result)
+    out: dict[str, Any] = {
+        "result": result,
+        "stored": stored,
+        "truncated": status.truncated,
+        "bad_telegrams": bad,
+        "reproduced": None,
+        "max_abs_diff": None,
+    }
+    if stored is not None and stored.get("state") == "done":
+        diff = _max_diff(stored["result"], result)
+        out["max_abs_diff"] = diff
+        out["reproduced"] = diff is not None and diff <= 1e-9
+    return out
+
+
+def _max_diff(a: Any, b: Any) -> float | None:
+    """Largest absolute difference over the numbers both results share (None: structure differs)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        keys = set(a) & set(b) - {"duration_s", "scanner_stats", "measurement_id"}
+        diffs = [_max_diff(a[k], b[k]) for k in keys]
+        if any(d is None for d in diffs):
+            return None
+        return max((d for d in diffs if d is not None), default=0.0)
+    if isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            return None
+        diffs = [_max_diff(x, y) for x, y in zip(a, b, strict=True)]
+        if any(d is None for d in diffs):
+            return None
+        return max((d for d in diffs if d is not None), default=0.0)
+    if isinstance(a, bool) or isinstance(b, bool):
+        return 0.0 if a == b else None
+    if isinstance(a, int | float) and isinstance(b, int | float):
+        return abs(float(a) - float(b))
+    return 0.0 if a == b else None
