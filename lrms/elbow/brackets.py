@@ -66,7 +66,7 @@ def dbscan(points: ArrayLike, eps: float, min_samples: int) -> NDArray[np.int64]
     # renumber by decreasing size
     used = labels >= 0
     if used.any():
-        uniq, inv, counts = np.unique(labels[used], return_inverse=True, return_counts=True)
+        _, inv, counts = np.unique(labels[used], return_inverse=True, return_counts=True)
         order = np.argsort(-counts, kind="stable")
         rank = np.empty_like(order)
         rank[order] = np.arange(order.size)

@@ -66,9 +66,9 @@ def fit_auto(
     or 90 deg when close); ``ratio``: ``A/D`` fixed, or ``None`` (free); ``flange``: fit ``Df``.
     ``trim``: drop points farther than ``trim`` robust standard deviations (1.4826 times the
     median absolute residual of the points kept so far) from the fitted surface and refit, until
-    the kept set settles (at most ``TRIM_ROUNDS`` rounds; the kept rows are in ``fit.inliers``). Raises :class:`FitError` when no elbow
-    is found or the adjustment fails; a fit whose residual spread exceeds 15 % of ``D`` is
-    rejected as "not an elbow".
+    the kept set settles (at most ``TRIM_ROUNDS`` rounds; the kept rows are in ``fit.inliers``).
+    Raises :class:`FitError` when no elbow is found or the adjustment fails; a fit whose residual
+    spread exceeds 15 % of ``D`` is rejected as "not an elbow".
     """
     pts = as_points(points)
     start = init if init is not None else initial_values(pts, degree=degree, ratio=ratio, flange=flange, rng=rng)

@@ -89,7 +89,8 @@ def register(fit1: ElbowFit, fit2: ElbowFit) -> Registration:
     p1, p2 = fit1.params, fit2.params
     if abs(p1.degree - p2.degree) > 1e-9:
         raise FitError(
-            f"the two fits are different joints: {math.degrees(p1.degree):.1f} deg and {math.degrees(p2.degree):.1f} deg"
+            f"the two fits are different joints: {math.degrees(p1.degree):.1f} deg and "
+            f"{math.degrees(p2.degree):.1f} deg"
         )
     if abs(p1.D - p2.D) > MAX_DIAMETER_MISMATCH * max(p1.D, p2.D):
         raise FitError(f"the two fits are different joints: diameters {p1.D * 1e3:.1f} mm and {p2.D * 1e3:.1f} mm")
