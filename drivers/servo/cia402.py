@@ -643,7 +643,7 @@ def error_register_for(code: int) -> int:
         reg |= 0x04
     elif family == 0x4000:
         reg |= 0x08
-    elif code & 0xFF00 == 0x8100:
+    elif code & 0xFF00 in (0x8100, 0x8200):  # communication, protocol
         reg |= 0x10
     elif code & 0xFF00 == 0x8600:
         reg |= 0x20
