@@ -35,7 +35,7 @@ _HDR = struct.Struct(">HHIBBHHIIBBBBhIIH")  # 38 bytes: version .. number of enc
 _ENC = struct.Struct(">IH")
 _CH = struct.Struct(">5sffiHH")  # content, scale, offset, start angle, step, count
 _U16 = struct.Struct(">H")
-_POS = struct.Struct(">ffffffB")
+_POS = struct.Struct(">ffffffBB")
 _TIME = struct.Struct(">HBBBBBI")
 _EVENT = struct.Struct(">4sIIi")
 
@@ -126,6 +126,9 @@ class Position:
     rot_z: float
     rotation_type: int
     """0 none, 1 pitch, 2 roll, 3 free."""
+    transmit_name: int = 0
+    """The enum8 that follows the rotation type in SICK's listing and Wireshark's dissector
+    ("transmits the name of device"); no recording has a position block to confirm it."""
 
 
 @dataclass(frozen=True)
@@ -424,7 +427,9 @@ def encode_scan_b(scan: Scan) -> bytes:
             parts.append(b"\x00\x00")
         else:
             p = scan.position
-            parts.append(b"\x00\x01" + _POS.pack(p.x, p.y, p.z, p.rot_x, p.rot_y, p.rot_z, p.rotation_type))
+            parts.append(
+                b"\x00\x01" + _POS.pack(p.x, p.y, p.z, p.rot_x, p.rot_y, p.rot_z, p.rotation_type, p.transmit_name)
+            )
         for text in (scan.name, scan.comment):
             if text is None:
                 parts.append(b"\x00\x00")
@@ -583,7 +588,7 @@ def decode_scan_a(buf: bytes, pos: int) -> Scan:
     ch8 = _channels_a(r, 2, np.uint8)
     position = name = comment = time_info = event = None
     if _flag_a(r, "position"):
-        position = Position(r.real(), r.real(), r.real(), r.real(), r.real(), r.real(), r.num(1))
+        position = Position(r.real(), r.real(), r.real(), r.real(), r.real(), r.real(), r.num(1), r.num(1))
     if _flag_a(r, "name"):
         name = r.string()
     if _flag_a(r, "comment"):
@@ -660,6 +665,7 @@ def encode_scan_a(scan: Scan) -> bytes:
         for x in (p.x, p.y, p.z, p.rot_x, p.rot_y, p.rot_z):
             w.real(x)
         w.num(p.rotation_type, 1)
+        w.num(p.transmit_name, 1)
     for text in (scan.name, scan.comment):
         if text is None:
             w.num(0, 2)

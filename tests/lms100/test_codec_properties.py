@@ -129,7 +129,7 @@ def scans(draw: st.DrawFn) -> Scan:
         encoders=tuple(draw(st.lists(st.builds(Encoder, u32, u16), max_size=2))),
         channels_16=draw(st.lists(channels(16), max_size=3)),
         channels_8=draw(st.lists(channels(8), max_size=2)),
-        position=draw(st.none() | st.builds(Position, f32, f32, f32, f32, f32, f32, u8)),
+        position=draw(st.none() | st.builds(Position, f32, f32, f32, f32, f32, f32, u8, u8)),
         name=draw(st.none() | _TEXT),
         comment=draw(st.none() | _TEXT),
         time_info=draw(st.none() | st.builds(ScanTime, u16, u8, u8, u8, u8, u8, u32)),

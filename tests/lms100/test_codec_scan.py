@@ -124,7 +124,7 @@ def _full_scan() -> Scan:
             make_channel("RSSI1", rng.integers(0, 65536, 1081), -45.0, 0.25),
         ],
         channels_8=[make_channel("RSSI2", rng.integers(0, 256, 1081), -45.0, 0.25)],
-        position=Position(1.5, -2.25, 0.125, 0.0, 90.0, -180.0, 3),
+        position=Position(1.5, -2.25, 0.125, 0.0, 90.0, -180.0, 3, 1),
         name="rig scanner 1",
         comment="  two  spaces  ",
         time_info=ScanTime(2026, 11, 21, 12, 40, 59, 999999),
