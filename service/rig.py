@@ -220,8 +220,9 @@ class Rig:
         if m is not None:
             try:
                 fault = m.fault()
+                state = m.state
                 out["motor"].update(
-                    state=m.state().name if hasattr(m.state(), "name") else str(m.state()),
+                    state=getattr(state, "name", str(state)),
                     position_deg=math.degrees(m.position_rad()),
                     fault=None if fault is None else {"code": fault.code, "reason": fault.reason},
                 )

@@ -183,3 +183,30 @@ class SimulatedRig:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m sim.rig``: serve one simulated rig until stdin closes (or Ctrl-C).
+
+    Prints one JSON line with ``scanner_url`` and ``motor_url`` once both are listening, so a
+    service in another process can be pointed at them (hardware-in-the-loop tests).
+    """
+    import argparse
+    import json
+    import sys
+
+    parser = argparse.ArgumentParser(prog="python -m sim.rig", description=main.__doc__)
+    parser.add_argument("--scene", default="seed003")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--cola", choices=("a", "b"), default="b")
+    parser.add_argument("--can", choices=("socketcand",), default="socketcand")
+    args = parser.parse_args(argv)
+    with SimulatedRig(args.scene, seed=args.seed, cola=args.cola, can=args.can) as rig:
+        print(json.dumps(rig.describe()), flush=True)
+        with contextlib.suppress(KeyboardInterrupt):
+            sys.stdin.read()  # until the parent closes our stdin
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
