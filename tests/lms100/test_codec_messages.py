@@ -73,6 +73,16 @@ GOLDEN: list[tuple[Message, bytes, str]] = [
         "02020202 00000017 734D4E20 53657441 63636573 734D6F64 6520 03F4724744 B3",
     ),
     (
+        SetAccessMode(2, 0xB21ACE26),
+        b"sMN SetAccessMode 02 B21ACE26",
+        "02020202 00000017 734D4E20 5365744163636573734D6F6465 20 02B21ACE26 77",
+    ),
+    (
+        SetAccessMode(4, 0x81BE23AA),
+        b"sMN SetAccessMode 04 81BE23AA",
+        "02020202 00000017 734D4E20 5365744163636573734D6F6465 20 0481BE23AA 87",
+    ),
+    (
         SetAccessModeReply(True),
         b"sAN SetAccessMode 1",
         "02020202 00000013 73414E20 5365744163636573734D6F6465 20 01 38",
