@@ -111,9 +111,12 @@ def test_move_reaches_the_target_and_samples_follow_it(motor: ModbusMotor, serve
     # the axis moved forward monotonically (up to the servo loop's tiny ripple) from 0 to 12 deg
     assert a.position_rad[0] < math.radians(1.0)
     assert np.all(np.diff(a.position_rad) > -math.radians(0.01))
-    # cruise speed, from the time-stamped positions (host stamps and drive positions agree)
-    speed = np.diff(a.position_rad) / np.diff(a.t_host_s)
-    assert np.median(np.sort(speed)[-10:]) == pytest.approx(CONFIG.velocity_rad_s, rel=0.05)
+    # the host stamps agree with the drive's motion: between 1 and 11 deg the mean speed lies between half
+    # the cruise speed and the cruise speed (each stamp is off by at most half its round trip, a few ms)
+    inside = (a.position_rad > math.radians(1.0)) & (a.position_rad < math.radians(11.0))
+    p, t = a.position_rad[inside], a.t_host_s[inside]
+    mean_speed = (p[-1] - p[0]) / (t[-1] - t[0])
+    assert 0.5 * CONFIG.velocity_rad_s < mean_speed < 1.1 * CONFIG.velocity_rad_s
     # and the drive's own velocity register (0x606C), polled in the same sample block, agrees
     assert a.velocity_rad_s.max() == pytest.approx(CONFIG.velocity_rad_s, rel=0.05)
     assert int(a.statusword[-1]) & cia402.SW_TARGET_REACHED
