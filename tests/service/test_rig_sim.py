@@ -208,3 +208,24 @@ def test_motor_fault_mid_sweep_stops_the_motor_and_fails_with_the_reason(
     nxt = client.post("/api/v1/measurements", json=FAST, headers=AUTH).json()["id"]
     body = _wait(client, nxt, {"done", "failed"})
     assert body["state"] == "failed" and "faulted" in body["error"]
+
+
+def test_step_and_scan_mode(sim_service: tuple[Any, Any, httpx.Client]) -> None:
+    _, _, client = sim_service
+    req = {
+        "target": "cylinder",
+        "sweep": {
+            "mode": "step",
+            "start_deg": -10,
+            "stop_deg": 50,
+            "step_deg": 4,
+            "speed_deg_s": 30,
+            "scans_per_step": 2,
+        },
+    }
+    mid = client.post("/api/v1/measurements", json=req, headers=AUTH).json()["id"]
+    body = _wait(client, mid, {"done", "failed"})
+    assert body["state"] == "done", body["error"]
+    res = body["result"]
+    assert res["sweep"]["mode"] == "step" and res["sweep"]["scans_in_sweep"] >= 16 * 2
+    _check_cylinder(res)
