@@ -38,8 +38,10 @@ EmcyListener = Callable[[int, int], None]  # (error code, error register)
 
 FAULT_KINDS = ("following_error", "over_current", "heartbeat_loss")
 
-#: Homing methods the simulated drive accepts: "the present position is the home position".
-SUPPORTED_HOMING_METHODS = (35, 37)
+#: Homing methods the simulated drive accepts: 35/37 "the present position is home"; 19/20 a home
+#: switch active above :attr:`SimDrive.home_switch_position`, 21/22 one active below it (the
+#: simulated switch has one edge, so 19 = 20 and 21 = 22 here).
+SUPPORTED_HOMING_METHODS = (19, 20, 21, 22, 35, 37)
 
 _MAPPABLE_BITS = 64  # classic CAN: 8 bytes per PDO
 
@@ -71,6 +73,7 @@ class SimDrive:
     max_step_s = 0.0005
     servo_tau_s = 0.002
     velocity_window = 100.0  # counts/s, "target velocity reached" (PV bit 10) and "speed = 0" (PV bit 12)
+    home_switch_position = 5_000.0  # raw axis counts where the simulated home switch changes state
 
     def __init__(self, node_id: int = 1, *, clock: Clock = time.monotonic, position: int = 0) -> None:
         if not 1 <= node_id <= 127:
@@ -104,6 +107,9 @@ class SimDrive:
         self._following_error_flag = False
         self._fe_since: float | None = None
         self._homing = "idle"  # idle | running | done | error
+        self._homing_phase = "search"  # search | back | stop (switch methods)
+        self._homing_dir = 1.0
+        self._homing_side = False
         self._error_code = 0
         self._error_register = 0
         # injected conditions
@@ -441,6 +447,17 @@ class SimDrive:
             self._homing = "error"
             return
         self._homing = "running"
+        self._homing_phase = "search"
+        active = self._switch_active(method, self._demand)
+        above = method in (19, 20)
+        # inactive: travel towards the switch; active: travel out of it
+        self._homing_dir = (1.0 if above else -1.0) * (-1.0 if active else 1.0)
+        self._homing_side = self._demand >= self.home_switch_position
+
+    def _switch_active(self, method: int, position: float) -> bool:
+        if method in (19, 20):
+            return position >= self.home_switch_position
+        return position <= self.home_switch_position
 
     # ------------------------------------------------------------------------------------------
     # statusword
@@ -470,7 +487,9 @@ class SimDrive:
             if abs(self._actual_vel) <= self.velocity_window:
                 sw |= cia402.SW_SPEED_ZERO
         elif self._mode is Mode.HOMING:
-            if self._homing == "done":
+            if self._homing == "running" and self._homing_phase == "stop":
+                sw |= cia402.SW_HOMING_ATTAINED  # attained, target not reached yet
+            elif self._homing == "done":
                 sw |= cia402.SW_HOMING_ATTAINED | cia402.SW_TARGET_REACHED
             elif self._homing == "error":
                 sw |= cia402.SW_HOMING_ERROR | cia402.SW_TARGET_REACHED
@@ -562,15 +581,10 @@ class SimDrive:
         lo, hi = self._limits()
         if mode is Mode.HOMING:
             if self._homing == "running":
-                self._demand_vel = 0.0
-                # methods 35/37: the present position is home; the encoder is shifted so that it
-                # reads the home offset here.
-                offset = float(int(self._store[(cia402.HOME_OFFSET, 0)]))
-                self._home_shift = offset - self._actual
-                self._demand = self._actual
-                self._homing = "done"
-            else:
-                self._demand_vel = _toward(self._demand_vel, 0.0, self._profile.deceleration * dt)
+                self._homing_step(dt)
+            else:  # interrupted or finished: come to rest with the homing acceleration
+                accel = max(1.0, float(int(self._store[(cia402.HOMING_ACCELERATION, 0)])))
+                self._demand_vel = _toward(self._demand_vel, 0.0, accel * dt)
             return
         if mode is Mode.PROFILE_VELOCITY:
             accel = max(1.0, float(self._store[(cia402.PROFILE_ACCELERATION, 0)]))
@@ -615,8 +629,41 @@ class SimDrive:
                 return
             self._demand_vel = speed * direction
             return
-        # no mode / no target: hold
-        self._demand_vel = _toward(self._demand_vel, 0.0, self._profile.deceleration * dt)
+        # no mode / no target: hold (coming to rest with the profile deceleration)
+        decel = max(1.0, float(int(self._store[(cia402.PROFILE_DECELERATION, 0)])))
+        self._demand_vel = _toward(self._demand_vel, 0.0, decel * dt)
+
+    def _homing_step(self, dt: float) -> None:
+        method = int(self._store[(cia402.HOMING_METHOD, 0)])
+        offset = float(int(self._store[(cia402.HOME_OFFSET, 0)]))
+        if method in (35, 37):  # the present position is home: shift the encoder reading
+            self._demand_vel = 0.0
+            self._home_shift = offset - self._actual
+            self._demand = self._actual
+            self._homing = "done"
+            return
+        fast = float(int(self._store[(cia402.HOMING_SPEEDS, 1)]))
+        slow = float(int(self._store[(cia402.HOMING_SPEEDS, 2)]))
+        accel = max(1.0, float(int(self._store[(cia402.HOMING_ACCELERATION, 0)])))
+        edge = self.home_switch_position
+        side = self._demand >= edge
+        crossed = side != self._homing_side  # the demand passed the edge during the last step
+        self._homing_side = side
+        if self._homing_phase == "search":
+            self._demand_vel = _toward(self._demand_vel, self._homing_dir * fast, accel * dt)
+            if crossed and self._demand_vel * self._homing_dir > 0:
+                self._homing_phase = "back"  # found it: come back slowly to the edge
+                self._homing_dir = -self._homing_dir
+        elif self._homing_phase == "back":
+            self._demand_vel = _toward(self._demand_vel, self._homing_dir * slow, accel * dt)
+            if crossed and self._demand_vel * self._homing_dir > 0:
+                # the edge position is latched: it reads the home offset from now on
+                self._home_shift = offset - edge
+                self._homing_phase = "stop"
+        else:  # stop after the edge
+            self._demand_vel = _toward(self._demand_vel, 0.0, accel * dt)
+            if self._demand_vel == 0.0:
+                self._homing = "done"
 
     def _snap_to_limits(self, lo: float, hi: float) -> None:
         if self._demand > hi:

@@ -138,8 +138,20 @@ def test_home_sets_zero_here(motor: Cia402CanMotor) -> None:
     motor.move_to(math.radians(-1.0), wait=True)  # back to profile position after homing
     assert math.degrees(motor.position_rad()) == pytest.approx(-1.0, abs=0.01)
     with pytest.raises(SdoAbort) as info:
-        motor.home(method=1)  # the simulated drive only knows "here is home"
+        motor.home(method=1)  # no index pulse on the simulated drive
     assert info.value.code == cia402.ABORT_INVALID_VALUE
+
+
+def test_home_on_switch_moves_and_reports_progress(motor: Cia402CanMotor) -> None:
+    motor.enable()
+    t0 = motor.clock()
+    motor.home(method=19, timeout=5.0)  # switch edge 5000 raw counts above the start
+    a = motor.sample_arrays_since(t0)
+    status = [cia402.decode_homing_status(int(sw)) for sw in a.statusword]
+    assert cia402.HomingStatus.IN_PROGRESS in status
+    assert status[-1] is cia402.HomingStatus.COMPLETED
+    assert np.max(np.abs(a.velocity_rad_s)) > 0.0  # it travelled to find the switch
+    assert abs(motor.position_rad()) < FAST.counts_to_rad(60)  # the edge reads 0 (home offset)
 
 
 def test_sdo_segmented_transfers_and_abort_codes(motor: Cia402CanMotor) -> None:

@@ -262,3 +262,46 @@ def test_strings_and_wire_encoding() -> None:
     with pytest.raises(ValueError):
         drive.inject_fault("gremlins")
     assert math.isfinite(drive.read(cia402.HIGH_RES_TIMESTAMP))
+
+
+@pytest.mark.parametrize(("method", "start"), [(19, 0), (19, 9_000), (21, 0), (21, 9_000)])
+def test_homing_on_the_switch_edge_takes_time_and_latches_the_edge(method: int, start: int) -> None:
+    clock = ManualClock()
+    drive = SimDrive(1, clock=clock, position=start)
+    drive.write(cia402.MODES_OF_OPERATION, 0, int(Mode.HOMING))
+    for cw in (0x06, 0x07, 0x0F):
+        drive.write(cia402.CONTROLWORD, 0, cw)
+    drive.write(cia402.HOMING_METHOD, 0, method)
+    drive.write(cia402.HOME_OFFSET, 0, 100)
+    drive.write(cia402.CONTROLWORD, 0, 0x1F)
+    statuses = []
+    for _ in range(3000):
+        run(drive, clock, 0.001)
+        status = cia402.decode_homing_status(drive.read(cia402.STATUSWORD))
+        if not statuses or statuses[-1] != status:
+            statuses.append(status)
+        if status is cia402.HomingStatus.COMPLETED:
+            break
+    H = cia402.HomingStatus
+    assert statuses == [H.IN_PROGRESS, H.ATTAINED_NOT_REACHED, H.COMPLETED]
+    # the raw edge (5000 counts) now reads the home offset; the axis stopped just past it
+    position = drive.read(cia402.POSITION_ACTUAL)
+    assert abs(position - 100) < 60
+    drive.write(cia402.CONTROLWORD, 0, 0x0F)
+    drive.write(cia402.MODES_OF_OPERATION, 0, int(Mode.PROFILE_POSITION))
+    start_move(drive, 100)
+    run(drive, clock, 0.1)
+    assert drive.read(cia402.POSITION_ACTUAL) == 100
+    assert drive.read(cia402.POSITION_DEMAND) == 100
+
+
+def test_homing_interrupted_by_clearing_bit4() -> None:
+    drive, clock, _ = enabled_drive(Mode.HOMING)
+    drive.write(cia402.HOMING_METHOD, 0, 19)
+    drive.write(cia402.CONTROLWORD, 0, 0x1F)
+    run(drive, clock, 0.05)
+    assert cia402.decode_homing_status(drive.read(cia402.STATUSWORD)) is cia402.HomingStatus.IN_PROGRESS
+    drive.write(cia402.CONTROLWORD, 0, 0x0F)
+    run(drive, clock, 0.1)
+    assert cia402.decode_homing_status(drive.read(cia402.STATUSWORD)) is cia402.HomingStatus.INTERRUPTED
+    assert drive.read(cia402.VELOCITY_ACTUAL) == 0
