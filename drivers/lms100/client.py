@@ -235,6 +235,7 @@ class ScannerClient:
         self._req_lock = threading.Lock()  # one request in flight (the device serves one at a time)
         self._ready = threading.Event()  # set while a link is up and its session restored
         self._closing = threading.Event()
+        self._shutting_down = False
         self._link: _Link | None = None
         self._links_opened = 0
         self._pending: _Pending | None = None
@@ -285,6 +286,7 @@ class ScannerClient:
         """Stop streaming (best effort), close the connection and stop all threads."""
         if self._closing.is_set():
             return
+        self._shutting_down = True
         if self._session.streaming and self._ready.is_set():
             with contextlib.suppress(DriverError, OSError):
                 self._request(SubscribeScanData(False), SubscribeScanDataReply, timeout=min(self.timeout_s, 0.5))
@@ -535,6 +537,9 @@ class ScannerClient:
                 raise DeviceConnectionError(f"{self.address}: cannot send {what}: {exc}") from None
             if not pending.done.wait(max(0.0, deadline - time.monotonic())):
                 self._stats.add("timeouts")
+                if self.reconnect and not self._shutting_down:
+                    # a late answer could be taken for the answer to the next request: start afresh
+                    self._link_lost(link, f"no answer to {what} within {limit:g} s")
                 raise DeviceTimeoutError(f"{self.address} did not answer {what} within {limit:g} s")
         finally:
             with self._state:
@@ -717,6 +722,7 @@ class ScannerClient:
                         target=self._reconnect_loop, name=f"lms100-reconnect-{self.host}:{self.port}", daemon=True
                     )
                     self._reconnector = reconnector
+                    reconnector.start()  # under the lock: close() never sees it unstarted
         link.close()
         if not current:
             return
@@ -724,8 +730,6 @@ class ScannerClient:
         log.warning("%s: link lost (%s)", self.address, reason)
         if fatal is not None:
             self._queue.fail(fatal)
-        if reconnector is not None:
-            reconnector.start()
 
     def _reconnect_loop(self) -> None:
         """Runs in its own thread until the session is back, the client closes, or it gives up.

@@ -259,6 +259,7 @@ class ScriptedPeer:
         self.listener.settimeout(0.2)
         self.answer = answer
         self.received = bytearray()
+        self.accepted = 0
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._serve, daemon=True)
         self.thread.start()
@@ -275,6 +276,7 @@ class ScriptedPeer:
             except TimeoutError:
                 continue
             conns.append(conn)
+            self.accepted += 1
             conn.settimeout(0.2)
             while not self.stop.is_set():
                 try:
@@ -308,6 +310,23 @@ def test_request_times_out_when_the_peer_never_answers(clients: list[ScannerClie
         assert c.stats.timeouts == 2
         wait_for(lambda: len(peer.received) >= 2 * 17)
         assert bytes(peer.received).startswith(b"\x02\x02\x02\x02\x00\x00\x00\x09sRN STlms")
+    finally:
+        peer.close()
+
+
+def test_with_reconnect_a_request_timeout_starts_a_fresh_connection(clients: list[ScannerClient]) -> None:
+    # a late answer must never be taken for the answer to the next request: the link is renewed
+    peer = ScriptedPeer(answer=None)
+    try:
+        c = ScannerClient("127.0.0.1", peer.port, "a", timeout_s=0.3, backoff=FAST)
+        clients.append(c)
+        c.connect()
+        with pytest.raises(DeviceTimeoutError):
+            c.serial_number()
+        wait_for(lambda: c.stats.reconnects == 1)
+        assert peer.accepted == 2
+        st = c.stats
+        assert (st.timeouts, st.connection_losses) == (1, 1)
     finally:
         peer.close()
 
