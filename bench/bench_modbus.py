@@ -51,8 +51,8 @@ while True:
 
 DRIVE_CHILD = r"""
 import sys
-from sim.drive.modbus_server import serve_from_url
-server = serve_from_url("modbus-rtu://")
+from sim.drive.modbus_server import start_from_url
+server = start_from_url("modbus-rtu://")
 print(server.url, flush=True)
 sys.stdin.read()
 server.close()

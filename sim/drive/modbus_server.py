@@ -24,7 +24,8 @@ Link faults for tests: ``drive.silent`` (the model's "heartbeat_loss" fault) or
 :attr:`ModbusDriveServer.silent` make the slave stop answering; :attr:`corrupt_replies` sends that
 many replies with a broken CRC.
 
-``serve_from_url`` (used by ``lrms sim motor --motor URL``)::
+``start_from_url`` starts a server in the background and returns it; ``serve_from_url`` (what
+``lrms sim motor --motor URL`` calls) runs one until SIGINT / SIGTERM. URLs::
 
     modbus-rtu://                       pty, the client URL names /dev/pts/N
     modbus-rtu:///tmp/lrms-servo        pty plus a symlink /tmp/lrms-servo -> /dev/pts/N
@@ -40,7 +41,9 @@ import contextlib
 import ipaddress
 import os
 import select
+import signal
 import socket
+import sys
 import threading
 import time
 import tty
@@ -71,7 +74,7 @@ from drivers.servo.modbus_rtu import (
 from drivers.url import DeviceURL
 from sim.drive.model import ObjectAccessError, SimDrive
 
-__all__ = ["ModbusDriveServer", "ServerStats", "serve_from_url"]
+__all__ = ["ModbusDriveServer", "ServerStats", "serve_from_url", "start_from_url"]
 
 _ADDRESS_ABORTS = {
     cia402.ABORT_NO_OBJECT,
@@ -408,14 +411,14 @@ class ModbusDriveServer:
         self.close()
 
 
-def serve_from_url(url: str | DeviceURL, *, drive: SimDrive | None = None, **kwargs: Any) -> ModbusDriveServer:
-    """Start a simulated Modbus RTU drive described by ``url`` (see the module docstring).
+def start_from_url(url: str | DeviceURL, *, drive: SimDrive | None = None, **kwargs: Any) -> ModbusDriveServer:
+    """Start a simulated Modbus RTU drive described by ``url`` in a background thread and return it.
 
-    Returns the running server; ``server.url`` is the URL a client opens, ``server.drive`` the model
-    (for fault injection), ``server.serve_forever()`` blocks, ``server.close()`` stops it.
+    ``server.url`` is the URL a client opens, ``server.drive`` the model (for fault injection),
+    ``server.serve_forever()`` blocks, ``server.close()`` stops it.
     """
     if kwargs:
-        raise DeviceURLError(f"serve_from_url: unexpected keyword argument(s) {', '.join(sorted(kwargs))}")
+        raise DeviceURLError(f"start_from_url: unexpected keyword argument(s) {', '.join(sorted(kwargs))}")
     u = url if isinstance(url, DeviceURL) else DeviceURL.parse(url)
     unit = u.get_int("unit", 1, lo=1, hi=247)
     baud = u.get_int("baud", 115200, lo=300, hi=4_000_000)
@@ -446,3 +449,26 @@ def serve_from_url(url: str | DeviceURL, *, drive: SimDrive | None = None, **kwa
     else:
         server.start_pty(link)
     return server
+
+
+def serve_from_url(url: str | DeviceURL) -> int:
+    """``lrms sim motor --motor modbus-rtu...``: serve until SIGINT / SIGTERM; returns the exit status.
+
+    Prints ``serving <client URL>`` (flushed) once the port is up, like the CANopen simulator.
+    """
+    server = start_from_url(url)
+    stop = threading.Event()
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, lambda signum, frame: stop.set())
+    try:
+        print(f"serving {server.url}", flush=True)
+        with contextlib.suppress(KeyboardInterrupt):
+            while not stop.wait(0.5):
+                pass
+        print("stopped", file=sys.stderr, flush=True)
+    finally:
+        server.close()
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    return 0

@@ -32,7 +32,7 @@ from drivers.servo.modbus_rtu import (
     encode_request,
 )
 from drivers.url import open_device
-from sim.drive.modbus_server import ModbusDriveServer, serve_from_url
+from sim.drive.modbus_server import ModbusDriveServer, start_from_url
 
 CONFIG = DriveConfig(
     counts_per_rev=10_000,
@@ -45,7 +45,7 @@ CONFIG = DriveConfig(
 
 @pytest.fixture
 def server() -> Iterator[ModbusDriveServer]:
-    srv = serve_from_url("modbus-rtu://")
+    srv = start_from_url("modbus-rtu://")
     try:
         yield srv
     finally:
@@ -324,7 +324,7 @@ def test_raw_frames_on_the_pty(server: ModbusDriveServer) -> None:
 
 # ------------------------------------------------------------------------------- other transports
 def test_loopback_tcp_transport() -> None:
-    with serve_from_url("modbus-rtu+socket://127.0.0.1:0?unit=7") as srv:
+    with start_from_url("modbus-rtu+socket://127.0.0.1:0?unit=7") as srv:
         assert srv.url.startswith("modbus-rtu+socket://127.0.0.1:") and srv.url.endswith("unit=7")
         with open_url(srv.url, config=CONFIG) as m:
             m.enable()
@@ -341,7 +341,7 @@ def test_symlinked_pty_and_a_replacement_map_without_sample_block(tmp_path: Path
     text = src.split("\n[sample]\n")[0].replace('word_order = "high_first"', 'word_order = "low_first"')
     map_path = tmp_path / "map.toml"
     map_path.write_text(text)
-    with serve_from_url(f"modbus-rtu://{link}?map={map_path}") as srv:
+    with start_from_url(f"modbus-rtu://{link}?map={map_path}") as srv:
         assert link.is_symlink() and os.readlink(link).startswith("/dev/pts/")
         with open_url(f"modbus-rtu://{link}?map={map_path}", config=CONFIG) as m:
             assert m.map.sample is None and m.map.word_order == "low_first"
@@ -377,4 +377,4 @@ def test_missing_port_and_missing_map_are_typed_errors(tmp_path: Path) -> None:
     with pytest.raises(ModbusMapError, match="not found"):
         open_url(f"modbus-rtu://{tmp_path}/no-such-tty?map={tmp_path}/none.toml")
     with pytest.raises(DeviceURLError, match="loopback"):
-        serve_from_url("modbus-rtu+socket://10.1.2.3:5020")
+        start_from_url("modbus-rtu+socket://10.1.2.3:5020")

@@ -18,7 +18,7 @@ from pymodbus.client import ModbusSerialClient
 from drivers.servo import cia402
 from drivers.servo.cia402 import State
 from drivers.servo.modbus_map import default_map
-from sim.drive.modbus_server import ModbusDriveServer, serve_from_url
+from sim.drive.modbus_server import ModbusDriveServer, start_from_url
 
 MAP = default_map()
 CW = MAP.entry(cia402.CONTROLWORD).address
@@ -31,10 +31,10 @@ U32 = ModbusSerialClient.DATATYPE.UINT32
 @pytest.fixture(params=["pty", "socket"])
 def peer(request: pytest.FixtureRequest) -> Iterator[tuple[ModbusSerialClient, ModbusDriveServer]]:
     if request.param == "pty":
-        server = serve_from_url(f"modbus-rtu://?unit={UNIT}")
+        server = start_from_url(f"modbus-rtu://?unit={UNIT}")
         port = server.url.removeprefix("modbus-rtu://").split("?")[0]
     else:
-        server = serve_from_url(f"modbus-rtu+socket://127.0.0.1:0?unit={UNIT}")
+        server = start_from_url(f"modbus-rtu+socket://127.0.0.1:0?unit={UNIT}")
         port = "socket://" + server.url.removeprefix("modbus-rtu+socket://").split("?")[0]
     # parity N: a pty cannot change parity after opening, and pymodbus reconfigures the port once
     client = ModbusSerialClient(port, baudrate=115200, parity="N", timeout=1.0, retries=1)

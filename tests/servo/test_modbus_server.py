@@ -27,7 +27,7 @@ from drivers.servo.modbus_rtu import (
     encode_request,
     response_frame_length,
 )
-from sim.drive.modbus_server import ModbusDriveServer, exception_for_abort, serve_from_url
+from sim.drive.modbus_server import ModbusDriveServer, exception_for_abort, start_from_url
 from sim.drive.model import SimDrive
 
 MAP = default_map()
@@ -134,7 +134,7 @@ def test_any_well_formed_request_gets_a_reply_or_an_exception(address: int, coun
 # ------------------------------------------------------------------------------ stream framing
 @pytest.fixture
 def pty_port() -> Iterator[tuple[serial.SerialBase, ModbusDriveServer]]:
-    srv = serve_from_url("modbus-rtu://")
+    srv = start_from_url("modbus-rtu://")
     path = srv.url.removeprefix("modbus-rtu://").split("?")[0]
     port = serial.serial_for_url(path, baudrate=115200, timeout=0.5)
     try:
@@ -189,7 +189,7 @@ def test_unknown_function_is_closed_by_the_silent_interval(
 
 
 def test_serve_forever_returns_when_closed() -> None:
-    srv = serve_from_url("modbus-rtu+socket://127.0.0.1:0")
+    srv = start_from_url("modbus-rtu+socket://127.0.0.1:0")
     done = threading.Event()
 
     def run() -> None:
