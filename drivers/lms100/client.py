@@ -60,6 +60,7 @@ from drivers.lms100.messages import (
     ReadScanConfig,
     ReadScanDataConfig,
     ReadSerialNumber,
+    Reboot,
     Run,
     RunReply,
     ScanConfig,
@@ -110,6 +111,9 @@ LMS1XX_SCAN_MODES = ((25.0, 0.25), (50.0, 0.5))
 """(scan frequency Hz, angular resolution deg) pairs an LMS1xx accepts in mLMPsetscancfg."""
 
 R = TypeVar("R", bound=Message)
+
+_PAUSES_STREAM = (SetAccessMode, StopMeasurement, SetScanConfig, Reboot)
+"""Requests after which a real LMS1xx may send no scans for a while (login, stop, reconfigure, reboot)."""
 
 
 class LoginError(CoLaError):
@@ -297,6 +301,7 @@ class ScannerClient:
             self._fail_pending(ScannerStateError(f"scanner client {self.address} closed"))
             reconnector = self._reconnector
         self._queue.fail(ScannerStateError(f"scanner client {self.address} is closed"))
+        self._update_session(streaming=False)
         if link is not None:
             link.close()
             if link.thread is not None and link.thread is not threading.current_thread():
@@ -527,8 +532,8 @@ class ScannerClient:
         pending = _Pending(msg, link)
         with self._state:
             self._pending = pending
-        if isinstance(msg, (SetAccessMode, StopMeasurement)):
-            link.scans = 0  # the stream may pause now; do not mistake that for a dead link
+        if isinstance(msg, _PAUSES_STREAM):
+            link.scans = 0  # the stream may pause now (config mode, busy, stopped): not a dead link
         try:
             try:
                 link.send(msg)
@@ -780,9 +785,14 @@ class ScannerClient:
         if s.login is not None:
             self._check_login(self._request(s.login, SetAccessModeReply, link=link), s.login)
         if s.scan_config is not None:
-            reply = self._request(s.scan_config, SetScanConfigReply, link=link)
-            if not reply.ok:
-                raise ScanConfigError(f"scan configuration refused on restore: {reply.status_text}", reply.status)
+            # an LMS1xx is busy for ~30 s after mLMPsetscancfg: only send it if the device lost it
+            have = self._request(ReadScanConfig(), ScanConfig, link=link)
+            want = s.scan_config
+            fields = ("scan_frequency", "angular_resolution", "start_angle", "stop_angle")
+            if any(getattr(have, f) != getattr(want, f) for f in fields):
+                reply = self._request(want, SetScanConfigReply, link=link)
+                if not reply.ok:
+                    raise ScanConfigError(f"scan configuration refused on restore: {reply.status_text}", reply.status)
         if s.scan_data_config is not None:
             self._request(s.scan_data_config, WriteScanDataConfigReply, link=link)
         if s.measuring is True:

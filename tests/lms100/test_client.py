@@ -368,15 +368,20 @@ def test_killed_connection_reconnects_and_the_gap_is_counted(
     server = make_server(dialect, realtime=True)
     c = connect(server, clients, backoff=Backoff(initial_s=0.15, max_s=0.5))
     c.login()
+    c.set_scan_config(25.0, 0.25)
     c.set_scan_data_config(time=True)
     c.start_measurement()
     c.run()
     c.start_streaming()
     before = [c.next_scan() for _ in range(3)]
+    epoch = server.device.epoch_start_us
     assert server.drop_clients() == 1
     after = [c.next_scan() for _ in range(5)]
     assert c.connected and c.streaming
     assert c.device_state().measuring
+    # the device kept its scan configuration, so the restore did not send mLMPsetscancfg again
+    # (that would restart the device's scan timing, and make a real LMS1xx busy for ~30 s)
+    assert server.device.epoch_start_us == epoch
     assert all(s.time_info is not None for s in after)
     everything = before + after + close_and_drain(c)
     st = c.stats
