@@ -6,7 +6,10 @@
 * ``modbus-rtu://...``: the simulated drive behind a Modbus RTU server
   (:func:`sim.drive.modbus_server.serve_from_url`).
 
-The first line printed is ``serving <URL>`` with the real port, once the bus is up.
+The first line printed is ``serving <URL>`` with the real port, once the bus is up. For the
+CANopen drive, lines on standard input steer it: ``inject following_error|over_current|
+heartbeat_loss``, ``clear`` (remove injected conditions) and ``status``; each is answered with
+one line (``ok ...`` or ``error ...``).
 """
 
 from __future__ import annotations
@@ -61,6 +64,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         with SimulatedCanDrive(url.port or 0, options.node, channel) as sim:
             print(f"serving {sim.url}", flush=True)
+            threading.Thread(target=_stdin_commands, args=(sim.drive,), daemon=True).start()
             try:
                 while not stop.wait(0.5):
                     pass
@@ -70,3 +74,33 @@ def run(args: argparse.Namespace) -> int:
     finally:
         signal.signal(signal.SIGTERM, previous)
     return 0
+
+
+def _stdin_commands(drive: object) -> None:
+    """Fault injection from standard input (one command per line, one answer line each)."""
+    from drivers.servo import cia402
+    from sim.drive.model import SimDrive
+
+    assert isinstance(drive, SimDrive)
+    for line in sys.stdin:
+        words = line.split()
+        if not words:
+            continue
+        try:
+            if words[0] == "inject" and len(words) == 2:
+                drive.inject_fault(words[1])
+                answer = f"ok injected {words[1]}"
+            elif words == ["clear"]:
+                drive.clear_injected()
+                answer = "ok cleared"
+            elif words == ["status"]:
+                sw = drive.read(cia402.STATUSWORD)
+                answer = (
+                    f"ok {cia402.describe_statusword(sw)} position={drive.read(cia402.POSITION_ACTUAL)}"
+                    f" error=0x{drive.read(cia402.ERROR_CODE):04X} silent={drive.silent} stalled={drive.stalled}"
+                )
+            else:
+                answer = "error commands: inject KIND | clear | status"
+        except ValueError as exc:
+            answer = f"error {exc}"
+        print(answer, flush=True)

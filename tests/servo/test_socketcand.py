@@ -21,6 +21,7 @@ from drivers.errors import DeviceConnectionError, DeviceURLError
 from drivers.servo import cia402
 from drivers.servo.cia402 import State
 from drivers.servo.cia402_can import Cia402CanMotor
+from drivers.servo.interface import HeartbeatLost
 from drivers.url import open_device
 from sim.drive.socketcand import SimulatedCanDrive, SocketcandError, SocketcandServer, format_frame, parse_send
 
@@ -167,10 +168,18 @@ def test_lrms_motor_against_lrms_sim_motor_subprocess() -> None:
         ],
         cwd=REPO,
         env=env,
+        stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
     )
+
+    def command(text: str) -> str:
+        assert sim.stdin is not None and sim.stdout is not None
+        sim.stdin.write(text + "\n")
+        sim.stdin.flush()
+        return sim.stdout.readline().strip()
+
     try:
         assert sim.stdout is not None
         line = sim.stdout.readline()
@@ -186,6 +195,20 @@ def test_lrms_motor_against_lrms_sim_motor_subprocess() -> None:
             assert len(a.t_host_s) >= 5 and np.all(np.diff(a.t_host_s) > 0)
             assert math.degrees(a.position_rad[-1]) == pytest.approx(2.0, abs=0.01)
             assert a.statusword[-1] & cia402.SW_TARGET_REACHED
+            # the drive in the other process goes silent: a fault here
+            assert command("inject heartbeat_loss") == "ok injected heartbeat_loss"
+            deadline = time.monotonic() + 5.0
+            while motor.fault() is None:
+                assert time.monotonic() < deadline
+                time.sleep(0.01)
+            with pytest.raises(HeartbeatLost):
+                motor.move_to(0.0)
+            assert command("clear") == "ok cleared"
+            motor.reset_fault()
+            assert motor.fault() is None
+            status = command("status")
+            assert status.startswith("ok Switch on disabled")  # the driver's quick stop after the loss
+            assert command("inject gremlins").startswith("error unknown fault kind")
         finally:
             motor.close()
         # and the command line, a third process
