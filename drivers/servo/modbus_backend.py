@@ -15,7 +15,8 @@ Two layers:
 URLs (opened with ``drivers.url.open_device("motor", url)``)::
 
     modbus-rtu:///dev/ttyUSB0?baud=115200&parity=E&unit=1&map=drive.toml
-    modbus-rtu+socket://127.0.0.1:5020?unit=1        # RTU frames over a TCP byte stream (pyserial socket://)
+    modbus-rtu://127.0.0.1:5020?unit=1               # RTU frames over a TCP byte stream (pyserial socket://)
+    modbus-rtu+socket://127.0.0.1:5020?unit=1        # the same, spelled out
     modbus-rtu+rfc2217://10.0.0.7:4001?unit=3        # a serial device server speaking RFC 2217
 
 Options: ``baud`` (default 115200), ``parity`` N/E/O (default E, the Modbus default 8E1),
@@ -438,11 +439,15 @@ _SUB_SCHEMES = {"socket": "socket", "rfc2217": "rfc2217"}
 def _port_url(url: DeviceURL) -> str:
     scheme = url.scheme
     if scheme == "modbus-rtu":
-        if url.host:
-            raise DeviceURLError(
-                f"{url.raw!r}: modbus-rtu:// takes a device path (modbus-rtu:///dev/ttyUSB0); "
-                "for a TCP byte stream use modbus-rtu+socket://host:port"
-            )
+        if url.host:  # modbus-rtu://host:port = RTU frames over a TCP byte stream, like +socket
+            if url.port is None:
+                raise DeviceURLError(
+                    f"{url.raw!r}: modbus-rtu://HOST:PORT needs a port; a serial device takes three slashes "
+                    "(modbus-rtu:///dev/ttyUSB0)"
+                )
+            if url.path not in ("", "/"):
+                raise DeviceURLError(f"{url.raw!r}: modbus-rtu://HOST:PORT takes no path")
+            return f"socket://{url.host}:{url.port}"
         if not url.path or url.path == "/":
             raise DeviceURLError(f"{url.raw!r}: no serial device path (modbus-rtu:///dev/ttyUSB0)")
         return url.path
@@ -512,6 +517,7 @@ def open_url(url: DeviceURL | str, *, config: DriveConfig | Mapping[str, Any] | 
         raise
 
 
-# ``modbus-rtu`` itself is registered lazily in drivers/url.py; the ``+socket`` / ``+rfc2217`` family
-# is registered here (effective once this module is imported, e.g. by drivers.url's lazy handler).
+# ``modbus-rtu`` itself (device paths and host:port) is registered lazily in drivers/url.py; the
+# ``+socket`` / ``+rfc2217`` spellings are registered here, so they resolve only once this module has
+# been imported (any ``modbus-rtu://`` URL opened before does that).
 register("motor", "modbus-rtu+", open_url)

@@ -29,7 +29,8 @@ many replies with a broken CRC.
 
     modbus-rtu://                       pty, the client URL names /dev/pts/N
     modbus-rtu:///tmp/lrms-servo        pty plus a symlink /tmp/lrms-servo -> /dev/pts/N
-    modbus-rtu+socket://127.0.0.1:5020  TCP on loopback (port 0 = ephemeral)
+    modbus-rtu://127.0.0.1:5020         TCP on loopback (port 0 = ephemeral); client URL the same form
+    modbus-rtu+socket://127.0.0.1:5020  the same
 
 with options ``unit`` (default 1), ``map`` (TOML), ``word_order``, ``baud`` (for the silent
 interval; default 115200) and ``position`` (initial position, counts).
@@ -380,7 +381,7 @@ class ModbusDriveServer:
 
         self._cleanup.append(listener.close)
         self._start(serve)
-        self.url = f"modbus-rtu+socket://{bound[0]}:{bound[1]}?unit={self.unit}"
+        self.url = f"modbus-rtu://{bound[0]}:{bound[1]}?unit={self.unit}"
         return bound[0], bound[1]
 
     def _start(self, target: Callable[[], None]) -> None:
@@ -425,16 +426,14 @@ def start_from_url(url: str | DeviceURL, *, drive: SimDrive | None = None, **kwa
     map_path = u.get_str("map", "")
     word_order = u.get_str("word_order", "", choices=("", "high_first", "low_first"))
     position = u.get_int("position", 0, lo=-(1 << 31), hi=(1 << 31) - 1)
-    if u.scheme == "modbus-rtu":
-        if u.host:
-            raise DeviceURLError(f"{u.raw!r}: modbus-rtu:// takes a link path for the pty, not a host")
-        link: str | None = u.path if u.path not in ("", "/") else None
-        tcp = None
-    elif u.scheme == "modbus-rtu+socket":
-        if u.port is None or not u.host:
-            raise DeviceURLError(f"{u.raw!r}: modbus-rtu+socket needs 127.0.0.1:PORT (0 = ephemeral)")
+    link: str | None = None
+    tcp: tuple[str, int] | None = None
+    if u.scheme == "modbus-rtu" and not u.host:
+        link = u.path if u.path not in ("", "/") else None
+    elif u.scheme in ("modbus-rtu", "modbus-rtu+socket"):
+        if u.port is None or not u.host or u.path not in ("", "/"):
+            raise DeviceURLError(f"{u.raw!r}: TCP needs 127.0.0.1:PORT (0 = ephemeral) and no path")
         tcp = (u.host, u.port)
-        link = None
     else:
         raise DeviceURLError(
             f"{u.raw!r}: the simulated Modbus drive serves modbus-rtu:// (pty) or modbus-rtu+socket://"

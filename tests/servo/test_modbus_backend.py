@@ -325,8 +325,11 @@ def test_raw_frames_on_the_pty(server: ModbusDriveServer) -> None:
 # ------------------------------------------------------------------------------- other transports
 def test_loopback_tcp_transport() -> None:
     with start_from_url("modbus-rtu+socket://127.0.0.1:0?unit=7") as srv:
-        assert srv.url.startswith("modbus-rtu+socket://127.0.0.1:") and srv.url.endswith("unit=7")
-        with open_url(srv.url, config=CONFIG) as m:
+        assert srv.url.startswith("modbus-rtu://127.0.0.1:") and srv.url.endswith("unit=7")
+        # both spellings reach the TCP stream through drivers.url
+        with open_device("motor", srv.url.replace("modbus-rtu://", "modbus-rtu+socket://"), config=CONFIG) as m:
+            assert m.state is State.SWITCH_ON_DISABLED
+        with open_device("motor", srv.url, config=CONFIG) as m:
             m.enable()
             m.move_to(math.radians(-2.0), wait=True)
             assert m.position_rad() == pytest.approx(math.radians(-2.0), abs=CONFIG.position_window_rad)
@@ -360,7 +363,8 @@ def test_symlinked_pty_and_a_replacement_map_without_sample_block(tmp_path: Path
         ("modbus-rtu:///dev/ttyUSB0?baud=115200&unti=1", "unknown option"),
         ("modbus-rtu:///dev/ttyUSB0?unit=0", "outside"),
         ("modbus-rtu:///dev/ttyUSB0?parity=X", "expected one of"),
-        ("modbus-rtu://127.0.0.1:5020", "device path"),
+        ("modbus-rtu://dev/ttyUSB0", "three slashes"),
+        ("modbus-rtu://127.0.0.1:5020/x", "no path"),
         ("modbus-rtu://", "no serial device path"),
         ("modbus-rtu+socket://127.0.0.1", "host:port"),
         ("modbus-rtu+telnet://127.0.0.1:23", "unknown scheme"),

@@ -35,7 +35,7 @@ def peer(request: pytest.FixtureRequest) -> Iterator[tuple[ModbusSerialClient, M
         port = server.url.removeprefix("modbus-rtu://").split("?")[0]
     else:
         server = start_from_url(f"modbus-rtu+socket://127.0.0.1:0?unit={UNIT}")
-        port = "socket://" + server.url.removeprefix("modbus-rtu+socket://").split("?")[0]
+        port = "socket://" + server.url.removeprefix("modbus-rtu://").split("?")[0]
     # parity N: a pty cannot change parity after opening, and pymodbus reconfigures the port once
     client = ModbusSerialClient(port, baudrate=115200, parity="N", timeout=1.0, retries=1)
     try:
