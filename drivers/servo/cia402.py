@@ -21,6 +21,8 @@ import enum
 import struct
 from dataclasses import dataclass
 
+from drivers.errors import DriverError
+
 # --------------------------------------------------------------------------------------------
 # Object dictionary: indices of the objects this project uses
 # --------------------------------------------------------------------------------------------
@@ -381,7 +383,7 @@ _STATE_BITS = {
 }
 
 
-class StatuswordError(ValueError):
+class StatuswordError(DriverError, ValueError):
     """A statusword matches no CiA 402 state."""
 
 

@@ -529,20 +529,20 @@ class Cia402Motor(Motor):
 
     def _wait_state(self, wanted: State, timeout: float, what: str) -> int:
         deadline = self.clock() + timeout
-        sw = self.statusword
+        t = self.clock()  # callers have written their command before: later statuswords reflect it
         while True:
-            remaining = deadline - self.clock()
-            if remaining <= 0:
-                raise MotionTimeout(
-                    f"{what}: drive still in {cia402.describe_statusword(sw)} after {timeout:.3g} s "
-                    f"(waiting for {wanted.label})"
-                )
-            sw = self._statusword_after(self.clock(), remaining)
+            sw = self._statusword_after(t, max(0.0, deadline - self.clock()))
             state = cia402.decode_state(sw)
             if state is wanted:
                 return sw
             if state in (State.FAULT, State.FAULT_REACTION_ACTIVE) and wanted is not State.FAULT:
                 self._raise_if_faulted(sw)
+            if self.clock() >= deadline:
+                raise MotionTimeout(
+                    f"{what}: drive still in {cia402.describe_statusword(sw)} after {timeout:.3g} s "
+                    f"(waiting for {wanted.label})"
+                )
+            t = self.clock()
 
     def _set_mode(self, mode: Mode, timeout: float = 1.0) -> None:
         if self._read_object(cia402.MODES_OF_OPERATION_DISPLAY) == mode:
