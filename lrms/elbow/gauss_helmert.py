@@ -49,8 +49,11 @@ HUBER_K = 2.0
 #: AXIS_GATE_MAX tube radii) are not used; only sharp elbows have surface there.
 AXIS_GATE = 0.0
 AXIS_GATE_MAX = 0.5
-#: A step the cost refuses is taken as convergence when below this fraction of each standard deviation.
-STALL_FRACTION = 0.1
+#: A step the cost refuses even when shortened 4096-fold is taken as convergence when below this
+#: fraction of each parameter's standard deviation: the cost is only piecewise smooth (portion
+#: boundaries, the pinch of a sharp elbow's horn torus), so no descent along the Gauss-Newton
+#: direction means a minimum along it, and a remaining step within the precision is no error.
+STALL_FRACTION = 1.0
 #: Converged once every parameter update is below this fraction of its standard deviation.
 PRECISION_FRACTION = 0.01
 
@@ -306,8 +309,7 @@ def fit_elbow(
             n_use = int(np.count_nonzero(use))
             sd = np.sqrt(np.clip(np.diag(np.linalg.inv(normal)), 0.0, None) * cost0 / max(n_use - u, 1))
             if np.all(np.abs(delta) <= STALL_FRACTION * sd):
-                # the cost is piecewise smooth (portion boundaries): a step this far below the
-                # precision that it cannot take means we are at the minimum
+                # the cost is piecewise smooth (see STALL_FRACTION)
                 vpv = float(np.sum((fo / sqm)[use] ** 2))
                 if robust and not robust_only:
                     robust, l0 = False, pts.copy()
