@@ -237,7 +237,9 @@ def map_sweep(
             outside = keep & ((beta < lo) | (beta > hi))
         keep &= ~outside
     alpha = calibration.alpha(device_angle[keep])
-    pts = calibration.to_world(forward(ranges[keep], alpha, beta[keep], calibration.p))
+    pts = forward(ranges[keep], alpha, beta[keep], calibration.p)
+    if not np.array_equal(calibration.world_from_rig, np.eye(4)):
+        pts = calibration.to_world(pts)
     return MappedSweep(
         points=pts,
         ranges=ranges[keep],

@@ -69,6 +69,7 @@ class ClockSync:
         self._wraps = 0
         self._last_raw: int | None = None
         self.drift = 0.0
+        self._rate_fitted = False
         self._offset = 0.0  # host - host0 at device time dev0
         self.resets = 0
         self.updates = 0
@@ -102,6 +103,7 @@ class ClockSync:
         self._head = 0
         self._dev0 = None
         self.drift = 0.0
+        self._rate_fitted = False
 
     def update(self, device_us_unwrapped: int, host_s: float) -> None:
         """Add one (device time, host receive time) pair; ``device_us_unwrapped`` from :meth:`unwrap`."""
@@ -129,13 +131,13 @@ class ClockSync:
         d = self._dev[: self._n]
         h = self._host[: self._n]
         # the rate changes slowly: refit it every few pairs; the offset follows every pair
-        if self.updates % self.refit_every == 0 or self.drift == 0.0:
-            span = float(d.max() - d.min())
-            drift = 0.0
-            if span >= self.min_span_s and d.size >= 8:
+        if self.updates % self.refit_every == 0 or not self._rate_fitted:
+            self.drift = 0.0
+            self._rate_fitted = False
+            if d.size >= 8 and float(d.max() - d.min()) >= self.min_span_s:
                 slope = _envelope_slope(d, h)
-                drift = float(np.clip(slope - 1.0, -self.max_drift, self.max_drift))
-            self.drift = drift
+                self.drift = float(np.clip(slope - 1.0, -self.max_drift, self.max_drift))
+                self._rate_fitted = True
         self._offset = float(np.min(h - (1.0 + self.drift) * d))
 
     # -- mapping --------------------------------------------------------------------------

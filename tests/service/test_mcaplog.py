@@ -60,6 +60,24 @@ def test_written_log_reads_back_with_foxglove_schemas(tmp_path: Path) -> None:
         assert summary.statistics.message_count == len(msgs)
 
 
+def test_fast_laserscan_encoding_is_the_protobuf_encoding(tmp_path: Path) -> None:
+    from foxglove_schemas_protobuf.LaserScan_pb2 import LaserScan
+
+    rng = np.random.default_rng(3)
+    ranges, inten = rng.uniform(0, 20, 1081), rng.uniform(0, 255, 1081)
+    with ml.McapLog(tmp_path / "s.mcap") as log:
+        log.log_scan(T0, ranges, -2.0, 2.5, inten)
+        log.log_scan(T0 + 1, np.zeros(0), 0.0, 0.0)
+    msgs, _ = ml.read_log(tmp_path / "s.mcap")
+    ref = LaserScan(
+        frame_id="scan_plane", start_angle=-2.0, end_angle=2.5, ranges=ranges.tolist(), intensities=inten.tolist()
+    )
+    ref.timestamp.seconds, ref.timestamp.nanos = divmod(T0, 1_000_000_000)
+    ref.pose.orientation.w = 1.0
+    assert msgs[0].data == ref.SerializeToString()
+    assert list(msgs[1].decode().ranges) == []
+
+
 def test_plane_pose_matches_kinematics() -> None:
     from lrms.kinematics import beam_rays
 

@@ -1,0 +1,239 @@
+"""Benchmarks of the acquisition service (printed, never asserted).
+
+1. Ingest pipeline: CoLa B LMDscandata telegrams (1081 beams, ray-cast by the simulated LMS100)
+   -> decode -> record (clock model, gap count) -> raw log (telegram, LaserScan, /tf to MCAP on
+   its thread) -> map to 3D, as scans per second and as a multiple of the sensor's 25 scans/s.
+   The decode-only rate of the same telegrams is printed as the baseline of this run.
+2. REST under load: the service (``lrms serve`` on the default simulated rig, its own process)
+   runs a slow sweep while N concurrent clients poll it for D seconds; errors, p50/p99 latency,
+   and scans dropped (scan-counter gaps plus client queue drops) of that sweep. Baseline: the
+   same requests from one client with the rig idle, in the same run.
+
+Run: ``.venv/bin/python -m bench.bench_service [--clients 100] [--duration 30] [--scans 500]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def _telegrams(n: int) -> list[bytes]:
+    from drivers.lms100.messages import ScanDataEvent
+    from drivers.lms100.protocol import CoLaConnection
+    from sim.scanner.device import SimulatedLMS100
+
+    dev = SimulatedLMS100("seed003", realtime=False, motor_angle_at=lambda t: 0.3 + 0.17 * np.asarray(t))
+    conn = CoLaConnection("b", role="device")
+    return [conn.send(ScanDataEvent(dev.stamp(dev.make_scan(k)))) for k in range(n)]
+
+
+def bench_ingest(n_scans: int) -> dict[str, float]:
+    from drivers.lms100.messages import ScanDataEvent
+    from drivers.lms100.protocol import CoLaConnection
+    from lrms.kinematics import RigCalibration
+    from service.mcaplog import McapLog
+    from service.sweep import SweepRecorder
+
+    frames = _telegrams(n_scans)
+    # baseline: decode only
+    t0 = time.perf_counter()
+    conn = CoLaConnection("b", role="client")
+    for f in frames:
+        conn.receive_data(f)
+        conn.next_message()
+    decode_s = time.perf_counter() - t0
+    # the pipeline
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        conn = CoLaConnection("b", role="client")
+        log = McapLog(Path(tmp) / "bench.mcap")
+        rec = SweepRecorder(RigCalibration(), log, "b")
+        host0 = 1_763_700_000_000_000_000
+        for k, f in enumerate(frames):
+            t_ns = host0 + k * 40_000_000
+            rec.add_motor(t_ns - 5_000_000, 0.3 + 0.17 * k * 0.04, 0.17)
+            rec.add_motor(t_ns + 5_000_000, 0.3 + 0.17 * (k * 0.04 + 0.01), 0.17)
+            conn.receive_data(f)
+            msg = conn.next_message()
+            assert isinstance(msg, ScanDataEvent)
+            rec.add_scan(msg.scan, t_ns, f)
+        mapped = rec.map(0, None, None, 0.05, 20.0)
+        log.log_cloud(host0, mapped.points)
+        log.close()
+        pipeline_s = time.perf_counter() - t0
+        size = (Path(tmp) / "bench.mcap").stat().st_size
+    return {
+        "scans": n_scans,
+        "decode_scans_per_s": n_scans / decode_s,
+        "pipeline_scans_per_s": n_scans / pipeline_s,
+        "mcap_bytes_per_scan": size / n_scans,
+        "points": float(mapped.points.shape[0]),
+    }
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+async def _load(base: str, paths: list[str], clients: int, duration: float) -> tuple[list[float], int, int]:
+    import httpx
+
+    latencies: list[float] = []
+    errors = 0
+    requests = 0
+    end = time.monotonic() + duration
+    limits = httpx.Limits(max_connections=clients, max_keepalive_connections=clients)
+    async with httpx.AsyncClient(base_url=base, timeout=10.0, limits=limits) as client:
+
+        async def worker(i: int) -> None:
+            nonlocal errors, requests
+            j = i
+            while time.monotonic() < end:
+                path = paths[j % len(paths)]
+                j += 1
+                t = time.perf_counter()
+                try:
+                    r = await client.get(path)
+                    ok = r.status_code == 200
+                except httpx.HTTPError:
+                    ok = False
+                latencies.append(time.perf_counter() - t)
+                requests += 1
+                if not ok:
+                    errors += 1
+
+        await asyncio.gather(*(worker(i) for i in range(clients)))
+    return latencies, errors, requests
+
+
+def bench_rest(clients: int, duration: float) -> dict[str, Any]:
+    import httpx
+
+    port = _free_port()
+    token = "bench"
+    with tempfile.TemporaryDirectory() as tmp:
+        env = {**os.environ, "LRMS_API_TOKEN": token}
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "service.cli.main",
+                "serve",
+                "--port",
+                str(port),
+                "--data",
+                tmp,
+                "--log-level",
+                "warning",
+            ],
+            cwd=REPO,
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        base = f"http://127.0.0.1:{port}"
+        try:
+            end = time.monotonic() + 60
+            while True:
+                try:
+                    if httpx.get(base + "/healthz").status_code == 200:
+                        break
+                except httpx.HTTPError:
+                    pass
+                if time.monotonic() > end or proc.poll() is not None:
+                    raise RuntimeError("the service did not start")
+                time.sleep(0.2)
+            paths = ["/healthz", "/api/v1/rig", "/api/v1/measurements?limit=20"]
+            idle, idle_err, _ = asyncio.run(_load(base, paths, 1, 3.0))
+            speed = 90.0 / max(duration, 1.0)  # the sweep lasts about the load's duration
+            auth = {"Authorization": f"Bearer {token}"}
+            r = httpx.post(
+                base + "/api/v1/measurements",
+                headers=auth,
+                json={"target": "cylinder", "sweep": {"speed_deg_s": speed}},
+            )
+            mid = r.json()["id"]
+            while httpx.get(f"{base}/api/v1/measurements/{mid}").json()["state"] == "queued":
+                time.sleep(0.05)
+            paths.append(f"/api/v1/measurements/{mid}")
+            lat, errors, n = asyncio.run(_load(base, paths, clients, duration))
+            while True:
+                m = httpx.get(f"{base}/api/v1/measurements/{mid}").json()
+                if m["state"] in ("done", "failed", "cancelled"):
+                    break
+                time.sleep(0.5)
+        finally:
+            proc.terminate()
+            proc.wait(30)
+    res = m.get("result") or {}
+    stats = res.get("scanner_stats", {})
+    lat_a = np.asarray(lat) * 1e3
+    idle_a = np.asarray(idle) * 1e3
+    return {
+        "clients": clients,
+        "duration_s": duration,
+        "requests": n,
+        "errors": errors + idle_err,
+        "p50_ms": float(np.percentile(lat_a, 50)),
+        "p99_ms": float(np.percentile(lat_a, 99)),
+        "idle_p50_ms": float(np.percentile(idle_a, 50)),
+        "idle_p99_ms": float(np.percentile(idle_a, 99)),
+        "measurement_state": m["state"],
+        "measurement_error": m.get("error"),
+        "scans_received": res.get("sweep", {}).get("scans_received"),
+        "scans_dropped": (res.get("sweep", {}).get("scans_missing", 0) or 0) + (stats.get("queue_drops", 0) or 0),
+        "diameter_mm": (res.get("diameter_m") or float("nan")) * 1e3,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--clients", type=int, default=100)
+    parser.add_argument("--duration", type=float, default=30.0)
+    parser.add_argument("--scans", type=int, default=500)
+    parser.add_argument("--skip-rest", action="store_true")
+    args = parser.parse_args(argv)
+    print(f"machine: {os.cpu_count()} cores, Python {sys.version.split()[0]}")
+    ing = bench_ingest(args.scans)
+    rt = 25.0  # LMS100 scans/s at 0.25 deg (1081 beams)
+    print(
+        f"ingest: {ing['scans']} scans x 1081 beams: decode only {ing['decode_scans_per_s']:.0f} scans/s "
+        f"(baseline), decode+record+log+map {ing['pipeline_scans_per_s']:.0f} scans/s = "
+        f"{ing['pipeline_scans_per_s'] / rt:.0f}x the sensor's real-time rate (goal >= 100x), "
+        f"{ing['pipeline_scans_per_s'] / ing['decode_scans_per_s']:.2f}x the decode-only rate; "
+        f"MCAP {ing['mcap_bytes_per_scan'] / 1024:.1f} KiB/scan"
+    )
+    if not args.skip_rest:
+        r = bench_rest(args.clients, args.duration)
+        print(
+            f"REST: {r['clients']} clients for {r['duration_s']:.0f} s during a sweep: {r['requests']} requests, "
+            f"{r['errors']} errors, p50 {r['p50_ms']:.1f} ms, p99 {r['p99_ms']:.1f} ms (goal <= 50 ms); "
+            f"one idle client: p50 {r['idle_p50_ms']:.1f} ms, p99 {r['idle_p99_ms']:.1f} ms "
+            f"(p99 ratio {r['p99_ms'] / r['idle_p99_ms']:.1f}x)"
+        )
+        print(
+            f"sweep under load: {r['measurement_state']} {r['measurement_error'] or ''} "
+            f"scans received {r['scans_received']}, dropped {r['scans_dropped']} (goal 0), "
+            f"diameter {r['diameter_mm']:.2f} mm"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
