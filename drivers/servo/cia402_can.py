@@ -51,6 +51,7 @@ from drivers.servo import cia402
 from drivers.servo.interface import (
     Cia402Motor,
     Clock,
+    ConnectionLost,
     DriveConfig,
     FaultInfo,
     HeartbeatLost,
@@ -266,7 +267,7 @@ class Cia402CanMotor(Cia402Motor):
                 raise SdoTimeout(
                     f"node {self.node_id}: no SDO answer for 0x{index:04X}:{subindex:02X} ({exc})"
                 ) from None
-            except can.CanError as exc:
+            except (can.CanError, OSError) as exc:
                 raise DeviceConnectionError(f"CAN send failed: {exc}") from exc
 
     def sdo_download(self, index: int, subindex: int, data: bytes, *, force_segment: bool = False) -> None:
@@ -280,7 +281,7 @@ class Cia402CanMotor(Cia402Motor):
                 raise SdoTimeout(
                     f"node {self.node_id}: no SDO answer for 0x{index:04X}:{subindex:02X} ({exc})"
                 ) from None
-            except can.CanError as exc:
+            except (can.CanError, OSError) as exc:
                 raise DeviceConnectionError(f"CAN send failed: {exc}") from exc
 
     def _read_object(self, index: int, subindex: int = 0) -> int:
@@ -303,6 +304,7 @@ class Cia402CanMotor(Cia402Motor):
     def _sync_loop(self) -> None:
         period = 1.0 / self.options.sync_hz
         next_t = time.monotonic()
+        failing = False
         while not self._stop.is_set():
             delay = next_t - time.monotonic()
             if delay > 0 and self._stop.wait(delay):
@@ -313,10 +315,13 @@ class Cia402CanMotor(Cia402Motor):
             try:
                 self.network.send_message(0x080, b"")
                 self.sync_count += 1
+                failing = False
             except (can.CanError, OSError, RuntimeError) as exc:
                 if self._stop.is_set():
                     break
-                log.warning("node %d: SYNC send failed: %s", self.node_id, exc)
+                if not failing:  # once per streak, not 200 times a second
+                    log.warning("node %d: SYNC send failed: %s", self.node_id, exc)
+                failing = True
             next_t += period
             now = time.monotonic()
             if now - next_t > period:  # fell behind (machine busy): skip, don't burst
@@ -383,6 +388,20 @@ class Cia402CanMotor(Cia402Motor):
         self._emcy_callbacks.append(callback)
 
     def _watchdog(self) -> None:
+        notifier = self.network.notifier
+        error = notifier.exception if notifier is not None else None
+        if error is not None and self._host_fault is None:  # the receive thread died (bus gone)
+            self._host_fault = FaultInfo(
+                0x8100,  # communication
+                f"CAN receive stopped: {error}",
+                0x11,
+                self.clock(),
+                source="bus",
+            )
+            log.error("node %d: %s", self.node_id, self._host_fault.reason)
+            with self._sw_cond:
+                self._sw_cond.notify_all()
+            return
         hb = self.options.heartbeat_ms
         if not hb or self._last_heartbeat is None or self._host_fault is not None:
             return
@@ -411,6 +430,8 @@ class Cia402CanMotor(Cia402Motor):
         fault = self._host_fault
         if fault is None:
             return
+        if fault.source == "bus":
+            raise ConnectionLost(fault.code, fault.reason, None, "reopen the motor")
         hb = self.options.heartbeat_ms
         if self._last_heartbeat is not None and self._last_heartbeat > fault.t_host_s:
             self._host_fault = None

@@ -19,6 +19,7 @@ Linux it is system-wide, so stamps from several processes compare).
 from __future__ import annotations
 
 import abc
+import logging
 import math
 import threading
 import time
@@ -36,6 +37,7 @@ from drivers.servo import cia402
 from drivers.servo.cia402 import Mode, State
 
 Clock = Callable[[], float]
+_log = logging.getLogger(__name__)
 
 # --------------------------------------------------------------------------------------------
 # Errors
@@ -64,7 +66,11 @@ class MotorFault(ServoError):
         super().__init__(text)
 
 
-class HeartbeatLost(MotorFault, DeviceConnectionError):
+class ConnectionLost(MotorFault, DeviceConnectionError):
+    """The link to the drive is gone (bus closed, receive thread stopped)."""
+
+
+class HeartbeatLost(ConnectionLost):
     """The drive stopped producing heartbeats: a silent drive is a fault."""
 
 
@@ -330,11 +336,13 @@ class FaultInfo:
     reason: str
     error_register: int = 0
     t_host_s: float = math.nan
-    source: str = "drive"  # "drive" (0x603F / EMCY) or "heartbeat" (host watchdog)
+    source: str = "drive"  # "drive" (0x603F / EMCY), "heartbeat" or "bus" (found by the host)
 
     def to_exception(self, statusword: int | None = None) -> MotorFault:
         if self.source == "heartbeat":
             return HeartbeatLost(self.code, self.reason, statusword)
+        if self.source == "bus":
+            return ConnectionLost(self.code, self.reason, statusword)
         return MotorFault(self.code, self.reason, statusword)
 
 
@@ -469,7 +477,10 @@ class Motor(abc.ABC):
         with self._cb_lock:
             callbacks = list(self._callbacks)
         for cb in callbacks:
-            cb(sample)
+            try:
+                cb(sample)
+            except Exception:  # a failing consumer must not stop the backend's receive thread
+                _log.exception("sample callback %r failed", cb)
 
 
 # --------------------------------------------------------------------------------------------

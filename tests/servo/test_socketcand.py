@@ -21,7 +21,7 @@ from drivers.errors import DeviceConnectionError, DeviceURLError
 from drivers.servo import cia402
 from drivers.servo.cia402 import State
 from drivers.servo.cia402_can import Cia402CanMotor
-from drivers.servo.interface import HeartbeatLost
+from drivers.servo.interface import ConnectionLost, HeartbeatLost
 from drivers.url import open_device
 from sim.drive.socketcand import SimulatedCanDrive, SocketcandError, SocketcandServer, format_frame, parse_send
 
@@ -144,6 +144,24 @@ def test_driver_across_socketcand_in_process() -> None:
             assert motor.state is State.SWITCH_ON_DISABLED
         finally:
             motor.close()
+
+
+def test_bus_server_gone_is_a_connection_fault() -> None:
+    sim = SimulatedCanDrive()
+    motor = open_device("motor", sim.url + "&heartbeat_ms=20")
+    try:
+        motor.enable()
+        sim.close()
+        deadline = time.monotonic() + 5.0
+        while motor.fault() is None:
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        fault = motor.fault()
+        assert fault is not None and fault.source in ("heartbeat", "bus")
+        with pytest.raises(ConnectionLost):
+            motor.enable()
+    finally:
+        motor.close()
 
 
 def test_no_server_is_a_connection_error() -> None:
