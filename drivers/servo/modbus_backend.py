@@ -110,7 +110,9 @@ class ModbusRtuClient:
     reply. Once the reply has started, the rest must follow within its wire time plus
     ``frame_slack`` (USB-serial adapters deliver in chunks a few ms apart, so the spec's 1.5-character
     inter-byte limit is not enforceable on a host; frames are delimited by their length instead).
-    Before each request the client keeps the line silent for t3.5 since the last byte it saw.
+    Before each request the client keeps the line silent for t3.5 since the last byte it saw; after a
+    broadcast (unit 0, no reply) it waits ``turnaround`` (the spec suggests 100-200 ms) so that the
+    slaves can act on it before the next request.
     """
 
     def __init__(
@@ -122,6 +124,7 @@ class ModbusRtuClient:
         timeout: float = 0.1,
         retries: int = 2,
         frame_slack: float = 0.02,
+        turnaround: float = 0.1,
         clock: Clock = time.monotonic,
     ) -> None:
         if not 0 <= unit <= 247:
@@ -139,6 +142,7 @@ class ModbusRtuClient:
         self.timeout = timeout
         self.retries = retries
         self.frame_slack = frame_slack
+        self.turnaround = turnaround
         self.clock = clock
         self.stats = LinkStats()
         # Reads wait in slices of the port's own timeout against the client's deadlines: changing
@@ -213,9 +217,9 @@ class ModbusRtuClient:
         except (OSError, serial.SerialException) as exc:
             raise DeviceConnectionError(f"Modbus port {self.port.name}: write failed: {exc}") from exc
         t_sent = self.clock()
-        if self.unit == 0:  # broadcast: no reply; give slaves the turnaround time
-            self._last_activity = t_sent + self.timing.frame_time(len(frame))
-            return Transaction(None, t_sent, self._last_activity)
+        if self.unit == 0:  # broadcast: no reply; the next request waits for the turnaround delay
+            self._last_activity = t_sent + self.timing.frame_time(len(frame)) + self.turnaround
+            return Transaction(None, t_sent, t_sent)
         # the reply must start within the response timeout (after our own frame is on the wire)
         deadline = t_sent + self.timing.frame_time(len(frame)) + self.timeout
         buf = self._read_into(bytearray(), 1, deadline, request)
@@ -240,10 +244,13 @@ class ModbusRtuClient:
             remaining = deadline - self.clock()
             if remaining <= 0:
                 self._last_activity = self.clock()
-                what = "complete reply" if buf else "reply"
+                where = f"unit {self.unit} on {self.port.name}"
+                if buf:
+                    raise ModbusTimeoutError(
+                        f"{where}: reply to function 0x{request.function:02X} stopped after {len(buf)} of {n} bytes"
+                    )
                 raise ModbusTimeoutError(
-                    f"unit {self.unit} on {self.port.name}: no {what} to function 0x{request.function:02X} "
-                    f"within {self.timeout * 1e3:.0f} ms ({len(buf)} byte(s) received)"
+                    f"{where}: no reply to function 0x{request.function:02X} within {self.timeout * 1e3:.0f} ms"
                 )
             try:
                 chunk = self.port.read(n - len(buf))  # returns early once n bytes are in
@@ -253,7 +260,8 @@ class ModbusRtuClient:
         return buf
 
     def _drain(self) -> None:
-        """Read until the line has been silent for t3.5 (resynchronise after garbage)."""
+        """Resynchronise after garbage: read until one read slice (5 ms, more than t3.5 from 9600 baud
+        up) passes in silence, for at most 0.5 s."""
         end = self.clock() + 0.5
         while self.clock() < end:
             if not self.port.read(256):  # one read-slice of silence
