@@ -20,7 +20,10 @@ of ``(Df - D)/2`` and would otherwise drag the solution into a wrong minimum); o
 plain least-squares iterations follow, so the reported solution and statistics are those of the
 Gauss-Helmert least-squares adjustment. Converged when the parameter update is below
 ``tol`` (relative to ``D`` for lengths, in rad for the rotation). The a posteriori variance factor
-is ``s0^2 = v^T P v / (n - u)`` and the parameter covariance ``s0^2 N^-1``. Besides that absolute
+is ``s0^2 = v^T P v / (n - u)`` and the parameter covariance ``s0^2 N^-1``. When the
+Gauss-Newton steps stall (no shortened step lowers the cost, or the iteration limit is reached)
+the same weighted residuals are handed to :func:`scipy.optimize.least_squares` (trust region,
+analytic Jacobian) to finish; the statistics are then computed as above and ``solver`` says so. Besides that absolute
 test, the adjustment has converged when every update is below 1 % of the parameter's current
 standard deviation (the cost of a sharp 0.5D elbow is not smooth where the horn torus pinches
 to its axis, and the last digits can otherwise oscillate far below the precision).
@@ -47,7 +50,7 @@ MIN_POINTS = 30
 HUBER_K = 2.0
 #: Points nearer the torus axis than this many residual standard deviations (at most
 #: AXIS_GATE_MAX tube radii) are not used; only sharp elbows have surface there.
-AXIS_GATE = 0.0
+AXIS_GATE = 3.0
 AXIS_GATE_MAX = 0.5
 #: A step the cost refuses even when shortened 4096-fold is taken as convergence when below this
 #: fraction of each parameter's standard deviation: the cost is only piecewise smooth (portion
@@ -135,6 +138,7 @@ class ElbowFit:
     # n: the points used (all but those within the axis gate of a sharp elbow)
     ratio: float | None
     sigmas: dict[str, float] = field(default_factory=dict)
+    solver: str = "gauss-helmert"
     inliers: NDArray[np.bool_] | None = None  # set by trimmed fits (lrms.elbow.pipeline): rows of the input used
 
     @property
@@ -162,6 +166,7 @@ class ElbowFit:
             "sigma0_m": self.sigma0,
             "iterations": self.iterations,
             "converged": self.converged,
+            "solver": self.solver,
             "n_points": self.n,
             "redundancy": self.redundancy,
             "rmse_m": self.rmse,
@@ -263,6 +268,7 @@ def fit_elbow(
     vpv = 0.0
     use = np.ones(n, dtype=bool)
     hub_scale = math.inf
+    stalled = False
     for it in range(1, max_iter + 1):
         f0, amat, b = design_matrices(l0, params, ratio, has_flange)
         w = f0 + np.einsum("ij,ij->i", b, pts - l0)
@@ -319,7 +325,8 @@ def fit_elbow(
             if robust:  # the robust start is stuck: carry on with plain least squares
                 robust, l0 = False, pts.copy()
                 continue
-            raise FitError(f"the adjustment diverged at iteration {it} (no step reduces the residuals)")
+            stalled = True
+            break
         params = trial
         kk = np.where(use, -(1.0 / mm) * (amat @ (step * delta) + w), 0.0)
         v = kk[:, None] * _qbt(b, q)
@@ -340,8 +347,17 @@ def fit_elbow(
         elif done:
             converged = True
             break
+    solver = "gauss-helmert"
+    if not converged and not robust_only:
+        # the Gauss-Newton steps stall on the piecewise-smooth cost: finish with a trust-region
+        # least-squares solver on the same residuals (orthogonal distances over sqrt(M))
+        params, vpv = _trust_region_polish(pts, params, ratio, has_flange, q, use, max_iter)
+        converged = True
+        solver = "gauss-helmert+trf"
+        it += 1
     if not converged:
-        raise FitError(f"the elbow adjustment did not converge in {max_iter} iterations")
+        what = "stalled (no step reduces the residuals)" if stalled else f"did not converge in {max_iter} iterations"
+        raise FitError(f"the elbow adjustment {what}")
     # final residuals and statistics at the solution (points used in the last iteration)
     f_fin, amat, b = design_matrices(pts, params, ratio, has_flange)
     mm = _weights_denominator(b, q)
@@ -365,6 +381,7 @@ def fit_elbow(
         redundancy=redundancy,
         residuals=np.asarray(f_fin),
         ratio=ratio,
+        solver=solver,
     )
     return replace(fit, sigmas=derived_sigmas(fit))
 
@@ -384,6 +401,47 @@ def _usable(pts: FloatArray, p: ElbowParams, sigma: float, gate: float) -> NDArr
     radius = min(gate * sigma, AXIS_GATE_MAX * p.D / 2)
     foot = p.A + (p.D / 2) * (ev.zp - p.A) / np.maximum(ev.s, 1e-300)
     return np.asarray((ev.portion != BEND) | (foot > radius))
+
+
+def _trust_region_polish(
+    pts: FloatArray,
+    params: ElbowParams,
+    ratio: float | None,
+    flange: bool,
+    q: FloatArray | None,
+    use: NDArray[np.bool_],
+    max_iter: int,
+) -> tuple[ElbowParams, float]:
+    """Minimize the same weighted orthogonal distances with :func:`scipy.optimize.least_squares`
+    (trust region reflective, analytic Jacobian); returns the parameters and ``v^T P v``."""
+    from scipy.optimize import least_squares
+
+    sel = pts[use]
+    qs = None if q is None else q[use]
+    _, _, b0 = design_matrices(sel, params, ratio, flange)
+    sqm = np.sqrt(_weights_denominator(b0, qs))
+    scale = max(params.D, 1e-6)
+
+    def fun(x: FloatArray) -> FloatArray:
+        p = apply_update(params, x, ratio, flange)
+        if not _valid(p):
+            return np.full(sel.shape[0], 1e3 * scale)
+        return np.asarray(_f_obs(sel, p) / sqm)
+
+    def jac(x: FloatArray) -> FloatArray:
+        p = apply_update(params, x, ratio, flange)
+        _, amat, _ = design_matrices(sel, p, ratio, flange)
+        return np.asarray(amat / sqm[:, None])
+
+    u = len(param_names(ratio, flange))
+    res = least_squares(fun, np.zeros(u), jac=jac, method="trf", x_scale="jac", max_nfev=10 * max_iter)
+    if not res.success or not np.all(np.isfinite(res.x)):
+        raise FitError(f"the elbow adjustment did not converge ({res.message})")
+    p = apply_update(params, res.x, ratio, flange)
+    if not _valid(p):
+        raise FitError("the elbow adjustment diverged (non-positive dimensions)")
+    r = fun(res.x)
+    return p, float(r @ r)
 
 
 def _f_obs(pts: FloatArray, p: ElbowParams) -> FloatArray:

@@ -52,7 +52,7 @@ FLANGE_PATCH = 0.25
 #: RANSAC inlier threshold for the slice cylinders, as a fraction of the end-to-end distance.
 RANSAC_THRESHOLD = 0.015
 #: Points used for the cost of the golden-section searches.
-COST_SAMPLE = 6000
+COST_SAMPLE = 4000
 #: Fewest points for an automatic start.
 MIN_POINTS = 200
 #: Nominal degrees the estimated degree snaps to when within SNAP_DEG.
@@ -116,9 +116,27 @@ def _slice_cylinder(patch: FloatArray, rng: np.random.Generator, size: float) ->
 
 
 def _end_cylinder(
+    pts: FloatArray,
+    end: FloatArray,
+    centroid: FloatArray,
+    size: float,
+    rng: np.random.Generator,
+    flange: bool,
+    cache: dict[tuple[float, ...], Cylinder] | None = None,
+) -> Cylinder:
+    """Cylinder fitted to the slice of points at one pipe end (memoized in ``cache`` by end point)."""
+    key = tuple(float(x) for x in end)
+    if cache is not None and key in cache:
+        return cache[key]
+    cyl = _end_cylinder_fit(pts, end, centroid, size, rng, flange)
+    if cache is not None:
+        cache[key] = cyl
+    return cyl
+
+
+def _end_cylinder_fit(
     pts: FloatArray, end: FloatArray, centroid: FloatArray, size: float, rng: np.random.Generator, flange: bool
 ) -> Cylinder:
-    """Cylinder fitted to the slice of points at one pipe end."""
     patch = pts[np.linalg.norm(pts - end, axis=1) < (FLANGE_PATCH if flange else PATCH) * size]
     slice_len = FLANGE_SLICE if flange else SLICE
     cyl = _slice_cylinder(patch, rng, size)
@@ -197,19 +215,21 @@ def initial_values(
     sample = pts if pts.shape[0] <= COST_SAMPLE else pts[g.choice(pts.shape[0], COST_SAMPLE, replace=False)]
     best: ElbowParams | None = None
     best_cost = math.inf
+    best_corner = centroid
+    cache: dict[tuple[float, ...], Cylinder] = {}
     errors: list[str] = []
     for e1, e2 in _end_candidates(pts, centroid):
         try:
-            cand = _from_ends(pts, sample, centroid, e1, e2, degree, ratio, flange, g)
+            cand, corner = _from_ends(pts, sample, centroid, e1, e2, degree, ratio, flange, g, cache)
         except FitError as exc:
             errors.append(str(exc))
             continue
         cost = _trimmed_cost(sample, cand) / cand.D**2
         if cost < best_cost:
-            best, best_cost = cand, cost
+            best, best_cost, best_corner = cand, cost, corner
     if best is None:
         raise FitError(errors[0] if errors else "no elbow found")
-    return best
+    return _refine_rotation(sample, best, best_corner, ratio, flange)
 
 
 def _end_candidates(pts: FloatArray, centroid: FloatArray) -> list[tuple[FloatArray, FloatArray]]:
@@ -246,11 +266,13 @@ def _from_ends(
     ratio: float | None,
     flange: bool,
     g: np.random.Generator,
-) -> ElbowParams:
-    """Initial values from two given end points (steps 2-4 of the module docstring)."""
+    cache: dict[tuple[float, ...], Cylinder],
+) -> tuple[ElbowParams, FloatArray]:
+    """Initial values from two given end points (steps 2-4 of the module docstring, without the
+    rotation refinement) and the corner point."""
     size = float(np.linalg.norm(e2 - e1))
-    c1 = _end_cylinder(pts, e1, centroid, size, g, flange)
-    c2 = _end_cylinder(pts, e2, centroid, size, g, flange)
+    c1 = _end_cylinder(pts, e1, centroid, size, g, flange, cache)
+    c2 = _end_cylinder(pts, e2, centroid, size, g, flange, cache)
     u1, u2 = c1.direction, c2.direction
     normal = np.cross(u1, u2)
     sn = float(np.linalg.norm(normal))
@@ -288,7 +310,13 @@ def _from_ends(
     if ratio is None:
         a_best = _golden(lambda a: _trimmed_cost(sample, replace(params_for(a), D=p.D, Df=p.Df)), 0.5 * p.D, 2.0 * p.D)
         p = replace(params_for(max(a_best, 0.45 * p.D)), D=p.D, Df=p.Df)
-    # golden-section refinement of the rotation about each model axis (pivot: the corner)
+    return p, corner
+
+
+def _refine_rotation(
+    sample: FloatArray, p: ElbowParams, corner: FloatArray, ratio: float | None, flange: bool
+) -> ElbowParams:
+    """Golden-section refinement of the rotation about each model axis (pivot: the corner)."""
     for _ in range(2):
         for axis in range(3):
 

@@ -109,7 +109,9 @@ def test_45_degree_end_leg_direction() -> None:
 
 def test_flange_radius_on_the_legs() -> None:
     p = _hand_elbow(A=0.1, D=0.1, deg=90.0, df=0.16)
-    pts = np.array([[0.2, 0.0, 0.1 + 0.08], [-0.1 - 0.08, 0.0, -0.3], [-0.15 * math.sqrt(0.5), 0.0, 0.15 * math.sqrt(0.5)]])
+    pts = np.array(
+        [[0.2, 0.0, 0.1 + 0.08], [-0.1 - 0.08, 0.0, -0.3], [-0.15 * math.sqrt(0.5), 0.0, 0.15 * math.sqrt(0.5)]]
+    )
     np.testing.assert_allclose(condition(pts, p), 0.0, atol=1e-12)
 
 
