@@ -135,6 +135,14 @@ class SimConfig(_Strict):
     cola: Literal["a", "b"] = "b"
     can: Literal["socketcand", "virtual"] = "socketcand"
     node: int = Field(default=1, ge=1, le=127)
+    process: bool = True
+    """Run the simulated rig in its own process (``python -m sim.rig``), as a real rig is."""
+
+    @model_validator(mode="after")
+    def _transport(self) -> SimConfig:
+        if self.process and self.can == "virtual":
+            raise ValueError("can = 'virtual' is an in-process bus: it needs process = false")
+        return self
 
 
 class RigConfig(_Strict):

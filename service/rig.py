@@ -12,8 +12,12 @@ the sweep loop gets to it, so queueing delays in this process do not enter the c
 
 from __future__ import annotations
 
+import contextlib
+import json
 import logging
 import math
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -41,6 +45,56 @@ def open_scanner(url: str, **kw: Any) -> ScannerClient:
     if not isinstance(client, ScannerClient):
         raise ServiceError(f"scanner URL {url!r} did not give an LMS100 client")
     return client
+
+
+class SimProcess:
+    """The simulated rig in a child process (``python -m sim.rig``), served on 127.0.0.1."""
+
+    def __init__(self, config: RigConfig) -> None:
+        sim = config.sim
+        assert sim is not None
+        cmd = [
+            sys.executable,
+            "-m",
+            "sim.rig",
+            "--scene",
+            sim.scene,
+            "--seed",
+            str(sim.seed),
+            "--cola",
+            sim.cola,
+            "--can",
+            sim.can,
+            "--node",
+            str(sim.node),
+            "--kinematics",
+            json.dumps(config.kinematics),
+            "--noise",
+            json.dumps(config.noise.model_dump()),
+        ]
+        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        assert self.proc.stdout is not None
+        line = self.proc.stdout.readline()
+        if not line:
+            self.proc.wait(10)
+            raise ServiceError(f"the simulated rig did not start (exit status {self.proc.returncode})")
+        self.info: dict[str, Any] = json.loads(line)
+        self.scanner_url: str = self.info["scanner_url"]
+        self.motor_url: str = self.info["motor_url"]
+
+    def describe(self) -> dict[str, Any]:
+        return {**self.info, "pid": self.proc.pid, "alive": self.proc.poll() is None}
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            with contextlib.suppress(OSError):
+                assert self.proc.stdin is not None
+                self.proc.stdin.close()
+            try:
+                self.proc.wait(15)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(5)
 
 
 def write_ply(path: Path, mapped: MappedSweep) -> None:
@@ -143,12 +197,17 @@ class Rig:
         self.scanner_url: str | None = config.scanner.url
         self.motor_url: str | None = config.motor.url
         self._lock = threading.Lock()
+        self._describe_lock = threading.Lock()
+        self._described: tuple[float, dict[str, Any]] | None = None
 
     # -- life cycle -----------------------------------------------------------------------
     def open(self) -> Rig:
         cfg = self.config
         try:
-            if cfg.sim is not None:
+            if cfg.sim is not None and cfg.sim.process:
+                self.sim = SimProcess(cfg)
+                self.scanner_url, self.motor_url = self.sim.scanner_url, self.sim.motor_url
+            elif cfg.sim is not None:
                 from sim.rig import SimulatedRig
                 from sim.scene import SensorModel
 
@@ -211,7 +270,19 @@ class Rig:
         self.close()
 
     # -- state ----------------------------------------------------------------------------
-    def describe(self) -> dict[str, Any]:
+    def describe(self, max_age_s: float = 0.5) -> dict[str, Any]:
+        """Device state for ``GET /rig``: cached for ``max_age_s``, and built from what the drivers
+        already know (no bus traffic unless the drive is faulted), so polling clients cannot load
+        the CAN bus during a sweep."""
+        with self._describe_lock:
+            now = time.monotonic()
+            if self._described is not None and now - self._described[0] < max_age_s:
+                return self._described[1]
+            out = self._describe()
+            self._described = (now, out)
+            return out
+
+    def _describe(self) -> dict[str, Any]:
         out: dict[str, Any] = {"scanner": {"url": self.scanner_url}, "motor": {"url": self.motor_url}}
         sc = self.scanner
         if sc is not None:
@@ -219,11 +290,14 @@ class Rig:
         m = self.motor
         if m is not None:
             try:
-                fault = m.fault()
                 state = m.state
+                name = getattr(state, "name", str(state))
+                sample = m.latest_sample()
+                fault = m.fault() if "FAULT" in name else None
                 out["motor"].update(
-                    state=getattr(state, "name", str(state)),
-                    position_deg=math.degrees(m.position_rad()),
+                    state=name,
+                    position_deg=None if sample is None else math.degrees(sample.position_rad),
+                    velocity_deg_s=None if sample is None else math.degrees(sample.velocity_rad_s),
                     fault=None if fault is None else {"code": fault.code, "reason": fault.reason},
                 )
             except Exception as exc:  # report, do not fail GET /rig

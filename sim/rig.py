@@ -200,8 +200,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--cola", choices=("a", "b"), default="b")
     parser.add_argument("--can", choices=("socketcand",), default="socketcand")
+    parser.add_argument("--node", type=int, default=1)
+    parser.add_argument("--kinematics", default="{}", help="JSON table as in the rig TOML [kinematics]")
+    parser.add_argument("--noise", default="{}", help="JSON: sigma_l_m, sigma_alpha_deg, sigma_beta_deg")
     args = parser.parse_args(argv)
-    with SimulatedRig(args.scene, seed=args.seed, cola=args.cola, can=args.can) as rig:
+    calibration = RigCalibration.from_dict(json.loads(args.kinematics))
+    noise = json.loads(args.noise)
+    sensor_kw: dict[str, float] = {}
+    if "sigma_l_m" in noise:
+        sensor_kw["sigma_l"] = float(noise["sigma_l_m"])
+    if "sigma_alpha_deg" in noise:
+        sensor_kw["sigma_alpha"] = float(np.deg2rad(noise["sigma_alpha_deg"]))
+    if "sigma_beta_deg" in noise:
+        sensor_kw["sigma_beta"] = float(np.deg2rad(noise["sigma_beta_deg"]))
+    sensor = SensorModel(**sensor_kw)
+    with SimulatedRig(
+        args.scene, calibration, sensor, seed=args.seed, cola=args.cola, can=args.can, node=args.node
+    ) as rig:
         print(json.dumps(rig.describe()), flush=True)
         with contextlib.suppress(KeyboardInterrupt):
             sys.stdin.read()  # until the parent closes our stdin

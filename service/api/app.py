@@ -186,7 +186,7 @@ def create_app(service: Service, manage_lifecycle: bool = True) -> FastAPI:
 
     # -- health and metrics ---------------------------------------------------------------
     @app.get("/healthz", tags=["ops"])
-    def healthz() -> dict[str, Any]:
+    async def healthz() -> dict[str, Any]:
         counts = service.store.count_by_state()
         return {
             "status": "ok",
@@ -203,7 +203,7 @@ def create_app(service: Service, manage_lifecycle: bool = True) -> FastAPI:
 
     # -- rig ------------------------------------------------------------------------------
     @api.get("/rig", tags=["rig"])
-    def rig() -> dict[str, Any]:
+    async def rig() -> dict[str, Any]:
         cfg = service.config
         info: dict[str, Any] = {
             "name": cfg.name,
@@ -241,7 +241,7 @@ def create_app(service: Service, manage_lifecycle: bool = True) -> FastAPI:
         return _measurement_out(m)
 
     @api.get("/measurements", response_model=list[MeasurementOut], tags=["measurements"])
-    def list_measurements(
+    async def list_measurements(
         state: Annotated[str | None, Query(description=f"one of {', '.join(STATES)}")] = None,
         limit: Annotated[int, Query(ge=1, le=1000)] = 100,
         offset: Annotated[int, Query(ge=0)] = 0,
@@ -251,7 +251,7 @@ def create_app(service: Service, manage_lifecycle: bool = True) -> FastAPI:
         return [_measurement_out(m) for m in service.store.list_measurements(state, limit, offset)]
 
     @api.get("/measurements/{mid}", response_model=MeasurementOut, tags=["measurements"])
-    def get_measurement(mid: str) -> MeasurementOut:
+    async def get_measurement(mid: str) -> MeasurementOut:
         return _measurement_out(service.store.get(mid))
 
     @api.post("/measurements/{mid}/cancel", response_model=MeasurementOut, dependencies=write, tags=["measurements"])
@@ -338,11 +338,11 @@ def create_app(service: Service, manage_lifecycle: bool = True) -> FastAPI:
         return _schedule_out(service.scheduler.add(req))
 
     @api.get("/schedules", response_model=list[ScheduleOut], tags=["schedules"])
-    def list_schedules() -> list[ScheduleOut]:
+    async def list_schedules() -> list[ScheduleOut]:
         return [_schedule_out(s) for s in service.store.list_schedules()]
 
     @api.get("/schedules/{sid}", response_model=ScheduleOut, tags=["schedules"])
-    def get_schedule(sid: str) -> ScheduleOut:
+    async def get_schedule(sid: str) -> ScheduleOut:
         return _schedule_out(service.store.get_schedule(sid))
 
     @api.delete("/schedules/{sid}", status_code=204, dependencies=write, tags=["schedules"])

@@ -137,7 +137,9 @@ def test_measures_the_cylinder_with_the_rig_in_another_process(sim_process: dict
 def sim_service(tmp_path: Path) -> Iterator[tuple[Any, Any, httpx.Client]]:
     text = (REPO / "service" / "default_rig.toml").read_text()
     cfg = parse_toml(text, base_dir=tmp_path)
-    cfg = parse_config({**cfg.model_dump(mode="json"), "auth": {"token": TOKEN}}, base_dir=tmp_path)
+    data = cfg.model_dump(mode="json")
+    data["sim"]["process"] = False  # in this process: the tests reach into the simulated drive and scanner
+    cfg = parse_config({**data, "auth": {"token": TOKEN}}, base_dir=tmp_path)
     svc, rig = build_service(cfg)
     try:
         with ServerThread(create_app(svc)) as srv, httpx.Client(base_url=srv.url, timeout=30) as client:
