@@ -27,6 +27,11 @@ def peer() -> Iterator[tuple[BaseNode402, SimCanNode, canopen.Network]]:
     network = canopen.Network()
     network.connect(interface="virtual", channel=channel)
     master = BaseNode402(NODE, canopen_object_dictionary())
+    # the library's timeouts (0.2 - 0.8 s) are tight for a shared 2-core test machine
+    master.TIMEOUT_CHECK_TPDO = 1.0
+    master.TIMEOUT_SWITCH_STATE_SINGLE = 1.0
+    master.TIMEOUT_SWITCH_STATE_FINAL = 3.0
+    master.TIMEOUT_SWITCH_OP_MODE = 2.0
     network.add_node(master)
     try:
         yield master, node, network
