@@ -261,7 +261,7 @@ def fit_elbow(
     scale = max(init.D, 1e-6)
 
     params = init
-    l0 = pts.copy()
+    l0 = pts
     converged = False
     robust = robust_start
     it = 0
@@ -269,6 +269,9 @@ def fit_elbow(
     use = np.ones(n, dtype=bool)
     hub_scale = math.inf
     stalled = False
+    sig_r = 0.0
+    f_cache: FloatArray | None = None  # f at the observations for the current parameters
+    f_trial = np.zeros(n)
     for it in range(1, max_iter + 1):
         f0, amat, b = design_matrices(l0, params, ratio, has_flange)
         w = f0 + np.einsum("ij,ij->i", b, pts - l0)
@@ -276,10 +279,12 @@ def fit_elbow(
         if np.any(mm <= 0) or not np.all(np.isfinite(mm)):
             raise FitError("degenerate linearization (zero gradient of the condition)")
         sqm = np.sqrt(mm)
-        fo = _f_obs(pts, params)
+        if f_cache is None:
+            f_cache = f0 if l0 is pts else _f_obs(pts, params)
+        fo = f_cache
         z = np.abs(fo) / sqm
-        sig_r = 1.4826 * float(np.median(z))
         if robust or it == 1:  # the set of points used is frozen once the least-squares phase starts
+            sig_r = 1.4826 * float(np.median(z))
             use = _usable(pts, params, sig_r * np.sqrt(np.median(mm)), axis_gate)
         if np.count_nonzero(use) < max(MIN_POINTS, 3 * u):
             raise FitError("too few points away from the torus axis for an elbow fit")
@@ -307,8 +312,10 @@ def fit_elbow(
         rigorous = not robust
         for _ in range(13):
             trial = apply_update(params, step * delta, ratio, has_flange)
-            if _valid(trial) and _cost((_f_obs(pts, trial) / sqm)[use], hub) <= cost0 * (1 + 1e-9) + floor:
-                break
+            if _valid(trial):
+                f_trial = _f_obs(pts, trial)
+                if _cost((f_trial / sqm)[use], hub) <= cost0 * (1 + 1e-9) + floor:
+                    break
             step *= 0.5
             rigorous = False
         else:
@@ -318,20 +325,21 @@ def fit_elbow(
                 # the cost is piecewise smooth (see STALL_FRACTION)
                 vpv = float(np.sum((fo / sqm)[use] ** 2))
                 if robust and not robust_only:
-                    robust, l0 = False, pts.copy()
+                    robust, l0 = False, pts
                     continue
                 converged = True
                 break
             if robust:  # the robust start is stuck: carry on with plain least squares
-                robust, l0 = False, pts.copy()
+                robust, l0 = False, pts
                 continue
             stalled = True
             break
         params = trial
+        f_cache = f_trial
         kk = np.where(use, -(1.0 / mm) * (amat @ (step * delta) + w), 0.0)
         v = kk[:, None] * _qbt(b, q)
         vpv = float(np.sum(kk * kk * mm))
-        l0 = pts + v if rigorous else pts.copy()
+        l0 = pts + v if rigorous else pts
         d = step * np.abs(delta)
         lin = np.concatenate([d[:3], d[6:]])
         done = bool(np.max(lin) < tol * scale and np.max(d[3:6]) < tol)
@@ -343,7 +351,7 @@ def fit_elbow(
             converged = True
             break
         if done and robust:
-            robust, l0 = False, pts.copy()  # robust start finished: polish with plain least squares
+            robust, l0 = False, pts  # robust start finished: polish with plain least squares
         elif done:
             converged = True
             break
