@@ -13,6 +13,9 @@ is the same driver against the same simulated drive on an in-process python-can 
   window; the rig needs >= 100/s (each 50 Hz scan gets its beta by interpolation).
 * age of the newest sample: ``clock() - latest_sample().t_host_s`` read at random instants,
   i.e. SYNC period / 2 on average plus the SYNC -> TPDO -> host latency.
+* stamp jitter: during the constant-velocity jog, positions against their SYNC stamps are fitted
+  with a line; the residuals divided by the velocity are the timing error of the stamps (how
+  far the instant the drive latched its position strays from the stamp), rms and max, in ms.
 
 The axis jogs at 20 deg/s during the sample measurements, so the TPDOs carry changing values.
 """
@@ -45,6 +48,7 @@ class Result:
     samples_per_s: float
     age_ms: np.ndarray
     gaps_ms: np.ndarray
+    jitter_ms: np.ndarray
 
 
 def measure(motor: Cia402CanMotor, seconds: float, sdo_count: int) -> Result:
@@ -69,8 +73,13 @@ def measure(motor: Cia402CanMotor, seconds: float, sdo_count: int) -> Result:
             if latest is not None:
                 ages.append(motor.clock() - latest.t_host_s)
         t_end = motor.clock()
-        stamps = motor.sample_arrays_since(t_start).t_host_s
-        stamps = stamps[stamps <= t_end]
+        a = motor.sample_arrays_since(t_start)
+        keep = a.t_host_s <= t_end
+        stamps = a.t_host_s[keep]
+        steady = keep & ((a.statusword & cia402.SW_TARGET_REACHED) != 0)  # at the jog velocity
+        t, p = a.t_host_s[steady], a.position_rad[steady]
+        slope, intercept = np.polyfit(t - t[0], p, 1)
+        jitter = (p - (slope * (t - t[0]) + intercept)) / slope
     finally:
         motor.stop()
         motor.disable()
@@ -79,6 +88,7 @@ def measure(motor: Cia402CanMotor, seconds: float, sdo_count: int) -> Result:
         samples_per_s=len(stamps) / (t_end - t_start),
         age_ms=np.asarray(ages) * 1e3,
         gaps_ms=np.diff(stamps) * 1e3,
+        jitter_ms=jitter * 1e3,
     )
 
 
@@ -142,6 +152,13 @@ def main() -> None:
     row("largest gap between samples", cross.gaps_ms.max(), base.gaps_ms.max(), "ms")
     for q in (50, 95, 99):
         row(f"age of newest sample p{q}", np.percentile(cross.age_ms, q), np.percentile(base.age_ms, q), "ms")
+    row(
+        "stamp jitter rms",
+        float(np.sqrt(np.mean(cross.jitter_ms**2))),
+        float(np.sqrt(np.mean(base.jitter_ms**2))),
+        "ms",
+    )
+    row("stamp jitter max", float(np.max(np.abs(cross.jitter_ms))), float(np.max(np.abs(base.jitter_ms))), "ms")
     print(
         f"\n  samples/s vs the rig's need (100/s): {cross.samples_per_s / 100.0:.2f}x cross-process;"
         f" vs the SYNC rate: {cross.samples_per_s / args.sync_hz:.3f}"
