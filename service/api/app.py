@@ -176,14 +176,6 @@ def create_app(service: Service, manage_lifecycle: bool = True) -> FastAPI:
     async def _bad(request: Request, exc: ServiceError) -> JSONResponse:
         return JSONResponse(status_code=400, content={"detail": str(exc)})
 
-    @app.middleware("http")
-    async def _count(request: Request, call_next: Callable[[Request], Any]) -> Response:
-        response: Response = await call_next(request)
-        route = request.scope.get("route")
-        path = getattr(route, "path", "unmatched")
-        service.metrics.http_requests.labels(request.method, path, str(response.status_code)).inc()
-        return response
-
     # -- health and metrics ---------------------------------------------------------------
     @app.get("/healthz", tags=["ops"])
     async def healthz() -> dict[str, Any]:
@@ -351,4 +343,32 @@ def create_app(service: Service, manage_lifecycle: bool = True) -> FastAPI:
         return Response(status_code=204)
 
     app.include_router(api)
+    app.add_middleware(_CountRequests, metrics=service.metrics)
     return app
+
+
+class _CountRequests:
+    """Pure ASGI middleware counting requests by route template and status (cheaper than
+    Starlette's ``BaseHTTPMiddleware``, which wraps every response in extra tasks)."""
+
+    def __init__(self, app: Any, metrics: Metrics) -> None:
+        self.app = app
+        self.metrics = metrics
+
+    async def __call__(self, scope: dict[str, Any], receive: Any, send: Any) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        status_code = [500]
+
+        async def send_wrapper(message: dict[str, Any]) -> None:
+            if message["type"] == "http.response.start":
+                status_code[0] = int(message["status"])
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_wrapper)
+        finally:
+            route = scope.get("route")
+            path = getattr(route, "path", "unmatched")
+            self.metrics.http_requests.labels(scope.get("method", ""), path, str(status_code[0])).inc()

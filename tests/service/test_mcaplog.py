@@ -60,6 +60,17 @@ def test_written_log_reads_back_with_foxglove_schemas(tmp_path: Path) -> None:
         assert summary.statistics.message_count == len(msgs)
 
 
+def test_quaternion_matches_scipy() -> None:
+    from scipy.spatial.transform import Rotation
+
+    rots = [ml.plane_rotation(b) for b in np.linspace(-3.1, 3.1, 41)]
+    rots += list(Rotation.random(200, random_state=1).as_matrix())
+    for rot in rots:
+        q = np.array(ml.quaternion(rot))
+        ref = Rotation.from_matrix(rot).as_quat()
+        assert np.allclose(q, ref, atol=1e-12) or np.allclose(q, -ref, atol=1e-12)
+
+
 def test_fast_laserscan_encoding_is_the_protobuf_encoding(tmp_path: Path) -> None:
     from foxglove_schemas_protobuf.LaserScan_pb2 import LaserScan
 
