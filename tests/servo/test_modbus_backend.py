@@ -54,7 +54,7 @@ def server() -> Iterator[ModbusDriveServer]:
 
 @pytest.fixture
 def motor(server: ModbusDriveServer) -> Iterator[ModbusMotor]:
-    m = open_device("motor", server.url + "&timeout=0.05", config=CONFIG)
+    m = open_device("motor", server.url + "&timeout=0.2", config=CONFIG)
     assert isinstance(m, ModbusMotor)
     try:
         yield m
