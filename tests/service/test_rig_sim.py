@@ -231,3 +231,18 @@ def test_step_and_scan_mode(sim_service: tuple[Any, Any, httpx.Client]) -> None:
     res = body["result"]
     assert res["sweep"]["mode"] == "step" and res["sweep"]["scans_in_sweep"] >= 16 * 2
     _check_cylinder(res)
+
+
+def test_cancel_a_running_sweep_stops_the_motor(sim_service: tuple[Any, Any, httpx.Client]) -> None:
+    _, rig, client = sim_service
+    mid = client.post("/api/v1/measurements", json=FAST, headers=AUTH).json()["id"]
+    _wait_sweeping(client, mid, 5.0)
+    assert client.post(f"/api/v1/measurements/{mid}/cancel", headers=AUTH).status_code == 200
+    body = _wait(client, mid, {"done", "failed", "cancelled"})
+    assert body["state"] == "cancelled" and body["error"] == "cancelled by request"
+    drive = rig.sim.drive
+    end = time.monotonic() + 10
+    while time.monotonic() < end and drive.read(cia402.VELOCITY_ACTUAL) != 0:
+        time.sleep(0.02)
+    assert drive.read(cia402.VELOCITY_ACTUAL) == 0
+    assert body["has_raw"]
