@@ -36,11 +36,11 @@ def run(args: argparse.Namespace) -> int:
     port = args.port if args.port is not None else (2111 if args.cola == "a" else 2112)
     device = SimulatedLMS100(args.scene, seed=args.seed, realtime=args.realtime, time_scale=args.time_scale)
     server = ScannerServer(device, host=args.host, port=port, dialect=args.cola)
-    server.start()
-    host, bound = server.address
     mode = "real time" if args.realtime else "fast (virtual clock)"
-    print(f"simulated LMS100 on tcp://{host}:{bound}?cola={args.cola} scene={args.scene} {mode}", flush=True)
     try:
+        server.start()
+        host, bound = server.address
+        print(f"simulated LMS100 on tcp://{host}:{bound}?cola={args.cola} scene={args.scene} {mode}", flush=True)
         server.serve_forever()
     except KeyboardInterrupt:
         print("stopped", file=sys.stderr)

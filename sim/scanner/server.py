@@ -227,8 +227,8 @@ class ScannerServer:
                     replies = self._answer(client.session, payload)
                     client.send(replies)
                     if self.device.reboot_requested:
+                        self.device.reboot()  # before the connections drop: a reconnect sees the rebooted device
                         self.drop_clients()
-                        self.device.reboot()
                         return
         except (OSError, CoLaError) as exc:
             log.debug("client %s closed: %s", client.addr, exc)
@@ -296,6 +296,10 @@ class ScannerServer:
                     continue
             try:
                 scan = dev.stamp(dev.make_scan(index))
+            except SimulatorError as exc:  # reconfigured between the check and the scan: not sent
+                log.debug("scan %d not sent: %s", index, exc)
+                next_index = None
+                continue
             except Exception:  # keep serving; the scan counter will show the scans that were not sent
                 log.exception("simulated scan %d failed", index)
                 next_index = None
