@@ -56,6 +56,7 @@ from drivers.lms100 import (
     OutputRange,
     PollScan,
     PowerOnCount,
+    RawTelegram,
     ReadDeviceIdent,
     ReadDeviceReady,
     ReadDeviceState,
@@ -120,6 +121,8 @@ FIELD_STOP = 2250000
 #: The scan is handed to the interface this long after its last beam (us).
 TRANSMIT_DELAY_US = 1000
 U32 = 1 << 32
+#: Events an LMS1xx offers besides LMDscandata (accepted, never fired in the simulation).
+QUIET_EVENTS = frozenset({"LIDoutputstate", "LIDinputstate", "LFErec"})
 
 MotorAngleFn = Callable[[np.ndarray], np.ndarray]
 
@@ -600,6 +603,10 @@ class SimulatedLMS100:
         if isinstance(msg, SubscribeScanData):
             session.subscribed = bool(msg.enable)
             return [SubscribeScanDataReply(bool(msg.enable))]
+        if isinstance(msg, RawTelegram) and msg.kind == "sEN" and msg.name in QUIET_EVENTS:
+            # Field-evaluation and I/O events exist on an LMS1xx; nothing in the simulation ever
+            # changes a field or an input, so a subscription is accepted and stays silent.
+            return [RawTelegram("sEA", msg.name, msg.params)]
         return [self._unknown(msg)]
 
     def _unknown(self, msg: Message) -> ErrorReply:
