@@ -207,3 +207,46 @@ def sweep_cloud(
     mot = np.asarray(motor_angles_rad, dtype=np.float64).reshape(-1, 1)
     samples = cast_beams(scene, calibration, sensor, dev, mot, rng)
     return samples.points(calibration), samples
+
+
+def beam_times(count: int, scan_frequency_hz: float = 25.0, resolution_deg: float = 0.25) -> FloatArray:
+    """Firing time (s) of beam ``j`` after the scan's first beam: one mirror turn per scan period.
+
+    ``j * period * resolution / 360 deg``: 27.8 us per beam at 25 Hz / 0.25 deg, as the simulated
+    device (:mod:`sim.scanner`) and the real LMS1xx time their beams.
+    """
+    if scan_frequency_hz <= 0 or resolution_deg <= 0:
+        raise SceneError("scan frequency and resolution must be positive")
+    times: FloatArray = np.arange(count, dtype=np.float64) * float(resolution_deg / 360.0 / scan_frequency_hz)
+    return times
+
+
+def continuous_sweep_cloud(
+    scene: Scene,
+    calibration: RigCalibration,
+    sensor: SensorModel,
+    motor_start_rad: float,
+    motor_stop_rad: float,
+    speed_rad_s: float,
+    rng: np.random.Generator | None = None,
+    scan_frequency_hz: float = 25.0,
+    resolution_deg: float = 0.25,
+) -> tuple[FloatArray, BeamSamples]:
+    """A sweep with the motor turning at constant speed *during* the scans (as the real rig does).
+
+    Scan ``k`` starts at ``k / scan_frequency``; each beam gets the motor angle at its own firing
+    time (:func:`beam_times`). Scans are taken while the motor is within
+    ``[motor_start, motor_stop]`` (either direction). Returns the valid world points and the
+    samples ``(scans, beams)``, whose ``motor_angle`` holds each beam's true motor angle.
+    """
+    if speed_rad_s <= 0 or not np.isfinite(speed_rad_s):
+        raise SceneError(f"sweep speed must be a positive number of rad/s, got {speed_rad_s!r}")
+    span = abs(motor_stop_rad - motor_start_rad)
+    direction = 1.0 if motor_stop_rad >= motor_start_rad else -1.0
+    period = 1.0 / scan_frequency_hz
+    dev = lms1xx_device_angles(resolution_deg)
+    scans = int(np.floor(span / speed_rad_s / period)) + 1
+    t = np.arange(scans)[:, None] * period + beam_times(len(dev), scan_frequency_hz, resolution_deg)[None, :]
+    motor = motor_start_rad + direction * np.minimum(speed_rad_s * t, span)
+    samples = cast_beams(scene, calibration, sensor, dev, motor, rng)
+    return samples.points(calibration), samples

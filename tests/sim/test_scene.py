@@ -18,7 +18,9 @@ from sim.scene import (
     SensorModel,
     Sphere,
     TorusSection,
+    beam_times,
     cast_beams,
+    continuous_sweep_cloud,
     get_scene,
     list_scenes,
     lms1xx_device_angles,
@@ -180,3 +182,23 @@ def test_named_scenes() -> None:
     assert isinstance(cyl, Cylinder) and cyl.radius == SEED003_DIAMETER / 2
     with pytest.raises(SceneError, match="unknown scene"):
         get_scene("nope")
+
+
+def test_continuous_sweep_gives_every_beam_the_motor_angle_at_its_time() -> None:
+    speed = np.deg2rad(20.0)  # rad/s
+    cloud, s = continuous_sweep_cloud(
+        get_scene("seed003"), CAL, SensorModel(), np.deg2rad(-10), np.deg2rad(50), speed, np.random.default_rng(8)
+    )
+    assert s.ranges.shape == (int(3.0 * 25) + 1, 1081)  # 60 deg at 20 deg/s = 3 s of 25 Hz scans
+    dt = 0.04 * 0.25 / 360
+    np.testing.assert_allclose(np.diff(s.motor_angle[5]), speed * dt)  # the plane turns during a scan
+    np.testing.assert_allclose(s.motor_angle[1, 0] - s.motor_angle[0, 0], speed * 0.04)
+    assert s.motor_angle.max() <= np.deg2rad(50) + 1e-12
+    np.testing.assert_allclose(beam_times(3), [0.0, dt, 2 * dt])
+    on_cyl = s.valid & (s.index == 0)
+    pts = CAL.map_samples(s.ranges[on_cyl], s.device_angle[on_cyl], s.motor_angle[on_cyl])
+    radial = np.hypot(pts[:, 0] - SEED003_AXIS_POINT[0], pts[:, 1] - SEED003_AXIS_POINT[1])
+    assert on_cyl.sum() > 300 and abs(np.median(radial) - SEED003_DIAMETER / 2) < 2e-3
+    assert cloud.shape[0] == s.valid.sum()
+    with pytest.raises(SceneError):
+        continuous_sweep_cloud(get_scene("wall"), CAL, SensorModel(), 0.0, 1.0, 0.0)
