@@ -246,3 +246,38 @@ def test_cancel_a_running_sweep_stops_the_motor(sim_service: tuple[Any, Any, htt
         time.sleep(0.02)
     assert drive.read(cia402.VELOCITY_ACTUAL) == 0
     assert body["has_raw"]
+
+
+def test_elbow_target_on_the_simulated_elbow(tmp_path: Path) -> None:
+    from sim.rig import ELBOW_BEND_RADIUS, ELBOW_DIAMETER
+
+    cfg = parse_toml(
+        f"""
+        [sim]
+        scene = "elbow"
+        process = false
+        [storage]
+        dir = "{tmp_path}"
+        [auth]
+        token = "{TOKEN}"
+        [fit]
+        roi_min_m = [-1.0, 2.0, -0.5]
+        roi_max_m = [1.5, 3.0, 1.0]
+        """
+    )
+    svc, rig = build_service(cfg)
+    try:
+        with ServerThread(create_app(svc)) as srv, httpx.Client(base_url=srv.url, timeout=30) as client:
+            req = {"target": "elbow", "sweep": {"speed_deg_s": 10.0, "start_deg": -5.0, "stop_deg": 66.0}}
+            mid = client.post("/api/v1/measurements", json=req, headers=AUTH).json()["id"]
+            body = _wait(client, mid, {"done", "failed"})
+    finally:
+        svc.stop()
+        rig.close()
+    assert body["state"] == "done", body["error"]
+    res = body["result"]
+    assert res["target"] == "elbow" and res["converged"]
+    # one-sided view of the tube with 12 mm range noise: the elbow fit is within a few mm
+    assert abs(res["diameter_m"] - ELBOW_DIAMETER) < 0.01, res
+    assert abs(res["bend_radius_m"] - ELBOW_BEND_RADIUS) < 0.03, res
+    assert res["sweep"]["scans_missing"] == 0
