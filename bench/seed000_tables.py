@@ -1,0 +1,359 @@
+"""Seed 000's Tables 3-6, the coverage study (Figures 12-14) and a two-station registration,
+measured on our simulated joints and printed beside the seed's numbers.
+
+Run: ``.venv/bin/python -m bench.seed000_tables`` (default: 2 repetitions per cell, Gaussian
+noise, the reduced coverage grid; a few minutes). ``--reps N`` for more repetitions,
+``--noise-kind uniform`` (or ``both``), ``--full-coverage`` for the whole 10-360 deg x 0-8 mm
+grid, ``--only 3,4,5,6,cov,reg`` to pick parts, ``--plot DIR`` for PNGs of the coverage study.
+
+Reading of the seed:
+
+* "+-N mm" noise: independent noise on each coordinate, Gaussian with sigma = N mm (default) or
+  uniform on [-N, N] mm (``--noise-kind uniform``).
+* Joints: the seed's Tables 3-6 label the eight joints a, b, c, e, f, g, h, i; they are Table 1's
+  a-h in order (same type and ratio), shown as "c (c)" = seed label (Table 1 joint).
+* 47,160 points per joint (131 stations x 360 deg), legs 0.6 D and 0.4 D (flanges 0.3 D, Df = 1.5 D).
+* delta_T: RMSE of the three centre coordinates (mm), delta_R: RMSE of the three rotation angles
+  (omega, psi, kappa; deg), delta_AD: RMSE of A and D (mm), each over the repetitions; a random
+  pose per repetition. The model's two labellings of the legs describe the same surface; the one
+  nearer the truth is compared.
+* Fits start from the automatic initial values (Section 2.2.2) with the ratio A/D free, except
+  where a cell says otherwise: the coverage study (10-360 deg, where a 10 deg sliver holds no pipe
+  end to start from) and cells where the automatic start fails start from the truth perturbed by
+  3 mm, 1 deg and 5 % (marked "*"). A cell is "n/a" only if the adjustment itself fails.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lrms.elbow import ElbowFit, fit_auto, fit_elbow
+from lrms.elbow.model import ElbowParams, euler_from_matrix, rotation_matrix
+from lrms.elbow.registration import register, rotation_angle_deg
+from lrms.errors import FitError
+from sim.scene.joints import SEED_TABLE_LABELS, TABLE1, make_joint, random_pose
+
+FloatArray = NDArray[np.float64]
+
+SEED_ROWS = list(SEED_TABLE_LABELS)  # a b c e f g h i
+
+# the seed's numbers: {row: [(dT, dR) per noise level]}, None = n/a
+SEED_T3: dict[str, list[tuple[float, float] | None]] = {  # D = 0.1 m, noise 0, 1, 2, 3 mm
+    "a": [(0, 0), (0, 0.007), (0, 0.012), (0, 0.006)],
+    "b": [(0, 0), (0, 0.012), (0, 0.027), (0.1, 0.008)],
+    "c": [(0, 0), (0.1, 0.014), (0, 0.002), (2.4, 4.007)],
+    "e": [(0, 0), (0.1, 0.012), (0.1, 0.016), (0.1, 0.132)],
+    "f": [(0, 0), (0, 0.005), (0.2, 0.097), (0.4, 0.101)],
+    "g": [(0, 0), (0.2, 0.033), (0.2, 0.052), (1.9, 3.090)],
+    "h": [(0, 0), (0, 0.012), (0.2, 0.042), (0.2, 0.044)],
+    "i": [(0, 0), (0.2, 0.013), (0.6, 0.127), (0.8, 0.020)],
+}
+SEED_T4: dict[str, list[tuple[float, float] | None]] = {  # D = 0.2 m, noise 3, 4, 5, 6 mm
+    "a": [(0.1, 0.027), (0.1, 0.031), (0.1, 0.037), (0.2, 0.023)],
+    "b": [(0, 0.025), (0, 0.015), (0.2, 0.087), (0.1, 0.024)],
+    "c": [(0.3, 0.045), (1, 0.181), None, None],
+    "e": [(0.3, 0.064), (0.5, 0.108), (0.6, 0.240), (1.9, 0.011)],
+    "f": [(0.5, 0.017), (1, 0.125), (0.5, 0.141), (1.1, 0.500)],
+    "g": [(1.7, 1.772), (3.7, 3.082), None, None],
+    "h": [(0.1, 0.013), (0.2, 0.045), (0.2, 0.027), (0.4, 0.029)],
+    "i": [(0.2, 0.033), (1.2, 0.024), (2, 0.136), (2.5, 0.331)],
+}
+SEED_T5: dict[
+    str, list[float | None]
+] = {  # D = 0.2 m, noise 0, 3, 4, 5, 6 mm: delta_AD (the seed's column says m; the values are mm)
+    "a": [0, 0, 0, 0, 0.1],
+    "b": [0, 0.1, 0, 0.1, 0.2],
+    "c": [0, 0.2, 0.3, None, None],
+    "e": [0, 0.4, 0.1, 0.5, 0.3],
+    "f": [0, 0.1, 0, 0.1, 0.2],
+    "g": [0, 0.7, 1.6, None, None],
+    "h": [0, 0.2, 0.3, 0.3, 0.4],
+    "i": [0, 0.8, 0.8, 0.9, 1.3],
+}
+SEED_T6: dict[str, list[tuple[float, float] | None]] = {  # D = 0.2 m, noise 20, 40, 60, 80 mm
+    "b": [(0.3, 0.064), (1.4, 0.266), (1.7, 0.251), (1.1, 1.072)],
+    "f": [(0.8, 0.171), None, None, None],
+}
+
+
+@dataclass
+class Cell:
+    d_t: float  # mm
+    d_r: float  # deg
+    d_ad: float  # mm
+    n_ok: int
+    n_fail: int
+    perturbed_start: bool
+    sigma_t: float = math.nan  # mean standard deviation of the centre coordinates (mm)
+    sigma_r: float = math.nan  # deg
+    sigma_ad: float = math.nan  # mm
+
+
+def _wrap_deg(x: FloatArray) -> FloatArray:
+    return np.asarray((x + 180.0) % 360.0 - 180.0)
+
+
+def _errors(fit: ElbowFit, truth: ElbowParams) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Centre (mm), angle (deg) and A, D (mm) errors, with the labelling nearer the truth."""
+    best = None
+    for p in (fit.params, fit.params.flipped()):
+        ang = rotation_angle_deg(p.rot @ truth.rot.T)
+        if best is None or ang < best[0]:
+            best = (ang, p)
+    assert best is not None
+    p = best[1]
+    dt = (p.center - truth.center) * 1e3
+    dr = _wrap_deg(np.degrees(np.array(euler_from_matrix(p.rot)) - np.array(euler_from_matrix(truth.rot))))
+    dad = np.array([p.A - truth.A, p.D - truth.D]) * 1e3
+    return dt, dr, dad
+
+
+def _perturbed(t: ElbowParams) -> ElbowParams:
+    d = math.radians(1.0)
+    return replace(
+        t,
+        center=t.center + 0.003 / math.sqrt(3),
+        rot=rotation_matrix(d / math.sqrt(3), d / math.sqrt(3), d / math.sqrt(3)) @ t.rot,
+        A=t.A * 1.05,
+        D=t.D * 0.95,
+        Df=None if t.Df is None else t.Df * 1.05,
+    )
+
+
+def run_cell(
+    joint: str,
+    D: float,
+    noise_mm: float,
+    reps: int,
+    kind: str,
+    seed: int,
+    coverage: float = 360.0,
+    auto: bool = True,
+) -> Cell:
+    spec = TABLE1[joint]
+    rng = np.random.default_rng(seed)
+    et, er, ead, st, sr, sad = [], [], [], [], [], []
+    fails = 0
+    perturbed = not auto
+    for _ in range(reps):
+        c, rot = random_pose(rng)
+        j = make_joint(
+            spec, D=D, center=c, rot=rot, coverage_deg=coverage, noise=noise_mm / 1e3, noise_kind=kind, rng=rng
+        )
+        fit: ElbowFit | None = None
+        if auto:
+            try:
+                fit = fit_auto(j.points, flange=spec.flange, rng=np.random.default_rng(0))
+            except FitError:
+                fit = None
+        if fit is None:
+            try:
+                fit = fit_elbow(j.points, _perturbed(j.truth), flange=spec.flange)
+                perturbed = True
+            except FitError:
+                fails += 1
+                continue
+        dt, dr, dad = _errors(fit, j.truth)
+        et.append(dt)
+        er.append(dr)
+        ead.append(dad)
+        sg = fit.sigmas
+        st.append(np.mean([sg["Xc_m"], sg["Yc_m"], sg["Zc_m"]]) * 1e3)
+        sr.append(np.mean([sg["omega_deg"], sg["psi_deg"], sg["kappa_deg"]]))
+        sad.append(np.mean([sg["A_m"], sg["D_m"]]) * 1e3)
+
+    def rmse(v: list[FloatArray]) -> float:
+        return float(np.sqrt(np.mean(np.square(np.array(v))))) if v else math.nan
+
+    return Cell(
+        rmse(et),
+        rmse(er),
+        rmse(ead),
+        len(et),
+        fails,
+        perturbed,
+        float(np.mean(st)) if st else math.nan,
+        float(np.mean(sr)) if sr else math.nan,
+        float(np.mean(sad)) if sad else math.nan,
+    )
+
+
+def _fmt(cell: Cell, what: str) -> str:
+    if cell.n_ok == 0:
+        return "n/a"
+    v = {"t": cell.d_t, "r": cell.d_r, "ad": cell.d_ad}[what]
+    s = f"{v:.3f}" if what == "r" else f"{v:.2f}"
+    if cell.n_fail:
+        s += f"({cell.n_fail}f)"
+    return s + ("*" if cell.perturbed_start else "")
+
+
+def _seed_fmt(v: float | None, what: str) -> str:
+    if v is None:
+        return "n/a"
+    return f"{v:.3f}" if what == "r" else f"{v:.1f}"
+
+
+def _row_name(row: str) -> str:
+    j = SEED_TABLE_LABELS[row]
+    sp = TABLE1[j]
+    fl = " fl" if sp.flange else ""
+    return f"{row} ({j}) {sp.degree_deg:.0f}deg {sp.ratio:g}D{fl}"
+
+
+def table_tr(
+    title: str,
+    seed_tab: dict[str, list[tuple[float, float] | None]],
+    rows: Sequence[str],
+    noises: Sequence[float],
+    D: float,
+    reps: int,
+    kind: str,
+    auto: bool = True,
+) -> dict[str, list[Cell]]:
+    print(f"\n{title}  (ours / seed; dT mm, dR deg; {reps} reps, {kind} noise)")
+    head = f"{'joint':<22}" + "".join(f"{'+-' + format(n, 'g') + ' mm':>30}" for n in noises)
+    print(head)
+    print(f"{'':<22}" + "".join(f"{'dT ours/seed':>15}{'dR ours/seed':>15}" for _ in noises))
+    out: dict[str, list[Cell]] = {}
+    for r in rows:
+        cells = []
+        line = f"{_row_name(r):<22}"
+        for k, n in enumerate(noises):
+            cell = run_cell(SEED_TABLE_LABELS[r], D, n, reps, kind, seed=1000 * k + ord(r), auto=auto)
+            cells.append(cell)
+            sv = seed_tab[r][k]
+            st = _seed_fmt(None if sv is None else sv[0], "t")
+            sr = _seed_fmt(None if sv is None else sv[1], "r")
+            line += f"{_fmt(cell, 't') + '/' + st:>15}{_fmt(cell, 'r') + '/' + sr:>15}"
+        print(line, flush=True)
+        out[r] = cells
+    return out
+
+
+def table5(cells0: dict[str, Cell], cells4: dict[str, list[Cell]], reps: int, kind: str) -> None:
+    noises = [0, 3, 4, 5, 6]
+    print(f"\nTable 5: dAD (mm), D = 0.2 m  (ours / seed; {reps} reps, {kind} noise)")
+    print(f"{'joint':<22}" + "".join(f"{'+-' + str(n) + ' mm':>16}" for n in noises))
+    for r in SEED_ROWS:
+        row = [cells0[r], *cells4[r]]
+        line = f"{_row_name(r):<22}"
+        for k, cell in enumerate(row):
+            line += f"{_fmt(cell, 'ad') + '/' + _seed_fmt(SEED_T5[r][k], 't'):>16}"
+        print(line)
+
+
+def coverage_study(full: bool, reps: int, kind: str, plot: str | None) -> None:
+    covs = list(range(10, 361, 10)) if full else [10, 30, 60, 90, 120, 180, 270, 360]
+    noises = list(range(0, 9)) if full else [0, 2, 4, 8]
+    print(f"\nCoverage study (Figures 12-14): joint a, D = 0.1 m, start: truth perturbed; {reps} reps, {kind} noise")
+    print("seed (read from the text): at >= 180 deg, dT < ~0.5 mm, dR < ~0.1 deg, dAD < ~1 mm")
+    res = np.full((3, len(noises), len(covs)), np.nan)
+    for q, what in enumerate(("dT (mm)", "dR (deg)", "dAD (mm)")):
+        if q == 0:
+            for i, n in enumerate(noises):
+                for k, cv in enumerate(covs):
+                    cell = run_cell("a", 0.1, n, reps, kind, seed=7 * i + k, coverage=cv, auto=False)
+                    res[:, i, k] = [cell.d_t, cell.d_r, cell.d_ad]
+        print(f"\n{what:<10}" + "".join(f"{c:>8}" for c in covs))
+        for i, n in enumerate(noises):
+            print(f"+-{n} mm    " + "".join(f"{res[q, i, k]:>8.3f}" for k in range(len(covs))))
+    if plot:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        for q, (fig_no, what) in enumerate(((12, "dT (mm)"), (13, "dR (deg)"), (14, "dAD (mm)"))):
+            fig, ax = plt.subplots(figsize=(7, 4))
+            for i, n in enumerate(noises):
+                ax.plot(covs, res[q, i], marker="o", ms=3, label=f"+-{n} mm")
+            ax.set_xlabel("coverage (deg)")
+            ax.set_ylabel(f"RMSE {what}")
+            ax.set_yscale("log")
+            ax.set_title(f"Figure {fig_no} (ours): joint a, D = 0.1 m")
+            ax.legend(fontsize=7)
+            fig.tight_layout()
+            fig.savefig(f"{plot}/seed000_fig{fig_no}.png", dpi=110)
+            plt.close(fig)
+        print(f"plots written to {plot}/seed000_fig12.png .. fig14.png")
+
+
+def table7(reps: int, kind: str) -> None:
+    print(f"\nTable 7: mean a-posteriori standard deviations, D = 0.1 m, 1 mm {kind} noise ({reps} reps)")
+    print(f"{'joint':<8}{'coverage':>9}{'points':>8}{'sT mm':>10}{'sR deg':>10}{'sAD mm':>10}")
+    for joint in ("a", "d"):
+        for cv in (90, 180, 270, 360):
+            cell = run_cell(joint, 0.1, 1.0, reps, kind, seed=cv, coverage=cv, auto=False)
+            print(
+                f"{joint:<8}{cv:>9}{int(131 * cv):>8}{cell.sigma_t:>10.4f}{cell.sigma_r:>10.4f}{cell.sigma_ad:>10.4f}"
+            )
+
+
+def registration(reps: int, kind: str) -> None:
+    print(
+        f"\nRegistration by one joint (Eq. 11): joint a, D = 0.2 m, two stations with 180 deg coverage from "
+        f"views 60 and 150 deg, 3 mm {kind} noise, random poses; {reps * 2} pairs"
+    )
+    rng = np.random.default_rng(77)
+    et, er = [], []
+    for _ in range(reps * 2):
+        c1, r1 = random_pose(rng)
+        c2, r2 = random_pose(rng)
+        j1 = make_joint(
+            "a", D=0.2, center=c1, rot=r1, coverage_deg=180, view_deg=60, noise=0.003, noise_kind=kind, rng=rng
+        )
+        j2 = make_joint(
+            "a", D=0.2, center=c2, rot=r2, coverage_deg=180, view_deg=150, noise=0.003, noise_kind=kind, rng=rng
+        )
+        f1 = fit_auto(j1.points, rng=np.random.default_rng(0))
+        f2 = fit_auto(j2.points, rng=np.random.default_rng(0))
+        reg = register(f1, f2)
+        rt = r1.T @ r2
+        tt = c1 - rt @ c2
+        # errors: where the joint centre of station 2 lands, and the rotation
+        et.append(float(np.linalg.norm(reg.apply(c2[None])[0] - (rt @ c2 + tt))) * 1e3)
+        er.append(rotation_angle_deg(reg.rotation @ rt.T))
+    print(f"translation error at the joint: mean {np.mean(et):.2f} mm, max {np.max(et):.2f} mm (seed's best 3.8 mm)")
+    print(f"rotation error: mean {np.mean(er):.3f} deg, max {np.max(er):.3f} deg (seed's best 0.36 deg)")
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
+    ap.add_argument("--reps", type=int, default=2, help="repetitions per cell (default 2)")
+    ap.add_argument("--noise-kind", choices=["gauss", "uniform", "both"], default="gauss")
+    ap.add_argument("--full-coverage", action="store_true", help="coverage 10..360 deg by 10, noise 0..8 mm by 1")
+    ap.add_argument("--only", default="3,4,5,6,cov,7,reg", help="comma list of parts: 3,4,5,6,cov,7,reg")
+    ap.add_argument("--plot", default=None, help="directory for the coverage-study PNGs")
+    args = ap.parse_args(argv)
+    parts = set(args.only.split(","))
+    kinds = ["gauss", "uniform"] if args.noise_kind == "both" else [args.noise_kind]
+    t0 = time.perf_counter()
+    for kind in kinds:
+        if "3" in parts:
+            table_tr("Table 3: D = 0.1 m", SEED_T3, SEED_ROWS, [0, 1, 2, 3], 0.1, args.reps, kind)
+        if "4" in parts or "5" in parts:
+            t4 = table_tr("Table 4: D = 0.2 m", SEED_T4, SEED_ROWS, [3, 4, 5, 6], 0.2, args.reps, kind)
+            if "5" in parts:
+                cells0 = {r: run_cell(SEED_TABLE_LABELS[r], 0.2, 0.0, 1, kind, seed=5) for r in SEED_ROWS}
+                table5(cells0, t4, args.reps, kind)
+        if "6" in parts:
+            table_tr("Table 6: D = 0.2 m", SEED_T6, ["b", "f"], [20, 40, 60, 80], 0.2, args.reps, kind)
+        if "cov" in parts:
+            coverage_study(args.full_coverage, max(1, args.reps // 2), kind, args.plot)
+        if "7" in parts:
+            table7(args.reps, kind)
+        if "reg" in parts:
+            registration(args.reps, kind)
+    print(f"\n(total {time.perf_counter() - t0:.0f} s)")
+
+
+if __name__ == "__main__":
+    main()
