@@ -77,7 +77,8 @@ def make_client() -> Iterator[Callable[[Script], tuple[ModbusRtuClient, Scripted
         slave = ScriptedSlave(script)
         port = serial.serial_for_url(slave.path, baudrate=115200, timeout=0.005)
         made.append((port, slave))
-        return ModbusRtuClient(port, unit=1, timeout=0.1, retries=2, timing=RtuTiming(115200)), slave
+        # a generous response timeout: only the tests about timeouts wait for one (they lower it themselves)
+        return ModbusRtuClient(port, unit=1, timeout=0.5, retries=2, timing=RtuTiming(115200)), slave
 
     yield make
     for port, slave in made:
@@ -104,11 +105,12 @@ def test_a_reply_in_chunks_a_few_ms_apart_is_one_frame(make_client) -> None:  # 
 def test_a_late_reply_to_a_timed_out_request_is_not_taken_for_the_next(make_client) -> None:  # type: ignore[no-untyped-def]
     def script(frame: bytes, n: int) -> list[tuple[float, bytes]]:
         if n == 1:  # first answer arrives after the client gave up
-            return [(0.15, reply_for(frame, (1, 1)))]
+            return [(0.3, reply_for(frame, (1, 1)))]
         return [(0.0, reply_for(frame, (2, 2)))]
 
     client, slave = make_client(script)
     client.retries = 0
+    client.timeout = 0.1
     with pytest.raises(ModbusTimeoutError, match="no reply"):
         client.read_registers(0x6640, 2)
     while slave.answered < 1:  # wait until the stale reply is waiting in the input buffer
