@@ -131,6 +131,7 @@ class ModbusDriveServer:
         *,
         unit: int = 1,
         baudrate: int = 115200,
+        frame_gap: float | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         if not 1 <= unit <= 247:
@@ -139,6 +140,7 @@ class ModbusDriveServer:
         self.map = register_map or default_map()
         self.unit = unit
         self.timing = RtuTiming(baudrate)
+        self._frame_gap = frame_gap
         self.clock = clock
         self.stats = ServerStats()
         self.silent = False
@@ -247,8 +249,10 @@ class ModbusDriveServer:
     @property
     def frame_gap(self) -> float:
         """Silence after which an incomplete or unknown-length frame is closed. The spec's t3.5 is
-        1.75 ms above 19200 baud; a host scheduler can stall a writer that long, so the server waits
-        at least 20 ms before giving up on a frame whose length it knows."""
+        1.75 ms above 19200 baud; a host scheduler can stall a writer that long, so by default the
+        server waits at least 20 ms before giving up on a frame whose length it knows."""
+        if self._frame_gap is not None:
+            return self._frame_gap
         return max(self.timing.t3_5, 0.02)
 
     def _serve_stream(self, recv: Callable[[float], bytes | None], send: Callable[[bytes], None]) -> None:
@@ -281,10 +285,7 @@ class ModbusDriveServer:
                         self.stats.incomplete += 1
                         buf.clear()
                     break
-                crc_errors = self.stats.crc_errors
-                reply = self.handle_frame(frame)
-                if self.stats.crc_errors != crc_errors:
-                    buf.clear()  # lost sync: whatever followed belongs to the broken frame
+                reply = self.handle_frame(frame)  # a bad frame is dropped; what follows is parsed afresh
                 if reply is not None:
                     send(reply)
 

@@ -154,6 +154,7 @@ def read_status(port: serial.SerialBase) -> int:
 
 def test_a_request_trickling_in_byte_by_byte_is_served(pty_port: tuple[serial.SerialBase, ModbusDriveServer]) -> None:
     port, srv = pty_port
+    srv._frame_gap = 1.0  # a loaded machine may stall this writer longer than the default 20 ms
     frame = encode_request(1, WriteSingleRegister(0x6400, cia402.CMD_SHUTDOWN))
     for b in frame:
         port.write(bytes([b]))
@@ -176,6 +177,15 @@ def test_back_to_back_requests_and_an_abandoned_frame(pty_port: tuple[serial.Ser
     port.timeout = 0.5
     assert cia402.decode_state(read_status(port)) is State.SWITCHED_ON
     assert srv.stats.incomplete == 1
+
+
+def test_a_corrupted_frame_does_not_swallow_the_next(pty_port: tuple[serial.SerialBase, ModbusDriveServer]) -> None:
+    port, srv = pty_port
+    good = encode_request(1, WriteSingleRegister(0x6400, cia402.CMD_SHUTDOWN))
+    bad = good[:-1] + bytes([good[-1] ^ 0x55])
+    port.write(bad + good)  # in one write: the slave drops the first and answers the second
+    assert port.read(8) == good
+    assert srv.stats.crc_errors == 1 and srv.stats.replies == 1
 
 
 def test_unknown_function_is_closed_by_the_silent_interval(
