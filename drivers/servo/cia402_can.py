@@ -8,8 +8,12 @@ other interface the host part (or the path) is the channel. Options:
 
 =================  =========  ====================================================================
 ``node``           1          CANopen node id of the drive (1..127)
-``sync_hz``        200        SYNC produced by this driver (10..1000 Hz); one sample per SYNC
-``heartbeat_ms``   50         heartbeat period written to the drive's 0x1017 (0 = no watchdog)
+``sync_hz``        200        SYNC produced by this driver (10..1000 Hz); one sample per SYNC;
+                              0 = another master produces SYNC (its SYNCs are timestamped here)
+``setup``          1          configure the node on open (NMT, heartbeat, PDO mapping, windows);
+                              0 = join a drive another master has set up, changing nothing
+``heartbeat_ms``   50         heartbeat period written to the drive's 0x1017 (0 = no watchdog;
+                              with ``setup=0`` the drive's own 0x1017 is used)
 ``heartbeat_lost`` 3.5        the drive is lost after this many heartbeat periods of silence
 ``sdo_timeout``    0.5        seconds to wait for each SDO response
 ``bitrate``        (none)     passed to python-can for interfaces that need it
@@ -26,6 +30,11 @@ next SYNC still gets its own SYNC's time); a sample is emitted when the matching
 and only then do waits on the statusword see it (so a wait that returned has its sample stored).
 The controlword is written by SDO (each command confirmed by the drive). ``close()`` stops the
 SYNC and the watchdog and releases the bus; it leaves the drive's state alone.
+
+``setup=0&sync_hz=0`` is the passive way in, for a second process (``lrms motor status``) while
+another master runs the drive: no NMT command, no re-mapping, no SYNC of its own; samples come
+from the other master's SYNCs (assumed to use this driver's PDO layout), and when no TPDOs flow
+the statusword is read by SDO.
 """
 
 from __future__ import annotations
@@ -46,7 +55,7 @@ import can
 import canopen
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
-from drivers.errors import DeviceConnectionError, DeviceTimeoutError, DriverError
+from drivers.errors import DeviceConnectionError, DeviceTimeoutError, DeviceURLError, DriverError
 from drivers.servo import cia402
 from drivers.servo.interface import (
     Cia402Motor,
@@ -76,6 +85,7 @@ class NotCia402Device(ServoError):
 class CanUrlOptions:
     node: int = 1
     sync_hz: float = 200.0
+    setup: bool = True
     heartbeat_ms: int = 50
     heartbeat_lost: float = 3.5
     sdo_timeout: float = 0.5
@@ -95,13 +105,21 @@ def read_url_options(url: DeviceURL) -> CanUrlOptions:
     """The driver options of a ``canopen+...://`` (or ``sim://``) URL (marks them used)."""
     return CanUrlOptions(
         node=url.get_int("node", 1, lo=1, hi=127),
-        sync_hz=url.get_float("sync_hz", 200.0, lo=10.0, hi=1000.0),
+        sync_hz=_sync_rate(url),
+        setup=url.get_bool("setup", True),
         heartbeat_ms=url.get_int("heartbeat_ms", 50, lo=0, hi=65535),
         heartbeat_lost=url.get_float("heartbeat_lost", 3.5, lo=1.5, hi=100.0),
         sdo_timeout=url.get_float("sdo_timeout", 0.5, lo=0.01, hi=30.0),
         counts_per_rev=url.get_int("counts_per_rev", lo=1) if url.has("counts_per_rev") else None,
         gear_ratio=url.get_float("gear_ratio") if url.has("gear_ratio") else None,
     )
+
+
+def _sync_rate(url: DeviceURL) -> float:
+    rate = url.get_float("sync_hz", 200.0, lo=0.0, hi=1000.0)
+    if 0.0 < rate < 10.0:
+        raise DeviceURLError(f"sync_hz={rate:g} in {url.raw!r}: use 0 (no SYNC of our own) or 10..1000")
+    return rate
 
 
 def bus_kwargs(url: DeviceURL) -> dict[str, Any]:
@@ -175,6 +193,8 @@ class Cia402CanMotor(Cia402Motor):
         self._sync_times: collections.deque[float] = collections.deque(maxlen=64)
         self._sync_lock = threading.Lock()
         self._last_heartbeat: float | None = None
+        self._heartbeat_ms = self.options.heartbeat_ms
+        self._last_tpdo_rx: float | None = None
         self._heartbeat_state: int | None = None
         self.emcy_history: collections.deque[tuple[float, cia402.Emcy]] = collections.deque(maxlen=32)
         self._emcy_callbacks: list[Callable[[float, cia402.Emcy], None]] = []
@@ -191,6 +211,8 @@ class Cia402CanMotor(Cia402Motor):
         self.network.subscribe(0x280 + n, self._on_tpdo2)
         self.network.subscribe(0x700 + n, self._on_heartbeat)
         self.network.subscribe(0x080 + n, self._on_emcy)
+        if not self.options.sync_hz:
+            self.network.subscribe(0x080, self._on_sync_seen)
         self.network.connect()
         self._sync_thread: threading.Thread | None = None
         try:
@@ -223,19 +245,24 @@ class Cia402CanMotor(Cia402Motor):
         device_type = self._read_object(cia402.DEVICE_TYPE)
         if device_type & 0xFFFF != 402:
             raise NotCia402Device(f"node {self.node_id}: device type 0x{device_type:08X} is not a CiA 402 drive")
-        self._nmt(0x80)  # Pre-operational: PDO mapping may change
-        self._write_object(cia402.PRODUCER_HEARTBEAT_TIME, 0, self.options.heartbeat_ms)
-        self._map_tpdo(0, [(cia402.STATUSWORD, 0, 16), (cia402.POSITION_ACTUAL, 0, 32)])
-        self._map_tpdo(1, [(cia402.VELOCITY_ACTUAL, 0, 32), (cia402.FOLLOWING_ERROR_ACTUAL, 0, 32)])
-        self._write_object(cia402.SYNC_COUNTER_OVERFLOW, 0, 0)
-        self._configure_drive()
+        if self.options.setup:
+            self._nmt(0x80)  # Pre-operational: PDO mapping may change
+            self._write_object(cia402.PRODUCER_HEARTBEAT_TIME, 0, self.options.heartbeat_ms)
+            self._map_tpdo(0, [(cia402.STATUSWORD, 0, 16), (cia402.POSITION_ACTUAL, 0, 32)])
+            self._map_tpdo(1, [(cia402.VELOCITY_ACTUAL, 0, 32), (cia402.FOLLOWING_ERROR_ACTUAL, 0, 32)])
+            self._write_object(cia402.SYNC_COUNTER_OVERFLOW, 0, 0)
+            self._configure_drive()
+            self._nmt(0x01)  # Operational
+        else:
+            self._heartbeat_ms = self._read_object(cia402.PRODUCER_HEARTBEAT_TIME)
         self._controlword = self._read_object(cia402.CONTROLWORD)
-        self._nmt(0x01)  # Operational
-        if self.options.heartbeat_ms:
+        if self._heartbeat_ms:
             self._last_heartbeat = self.clock()  # the watchdog starts now
         self._sync_thread = threading.Thread(target=self._sync_loop, name=f"canopen-sync-{self.node_id}", daemon=True)
         self._sync_thread.start()
-        self._statusword_after(self.clock(), 1.0)  # first TPDO: the node is up and answering SYNC
+        if self.options.sync_hz:  # first TPDO: the node is up and answering our SYNC
+            with self._sw_cond:
+                self._sw_cond.wait_for(lambda: self._last_sw is not None, timeout=1.0)
 
     def _nmt(self, command: int) -> None:
         self.network.send_message(0x000, bytes([command, self.node_id]))
@@ -301,7 +328,16 @@ class Cia402CanMotor(Cia402Motor):
     # ------------------------------------------------------------------------------------------
     # SYNC, TPDOs, heartbeat, EMCY
     # ------------------------------------------------------------------------------------------
+    def _on_sync_seen(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        """Another master's SYNC (``sync_hz=0``): stamp it on arrival."""
+        with self._sync_lock:
+            self._sync_times.append(self.clock())
+
     def _sync_loop(self) -> None:
+        if not self.options.sync_hz:  # SYNC comes from elsewhere: only watch
+            while not self._stop.wait(0.01):
+                self._watchdog()
+            return
         period = 1.0 / self.options.sync_hz
         next_t = time.monotonic()
         failing = False
@@ -331,7 +367,8 @@ class Cia402CanMotor(Cia402Motor):
     def _sync_time_for(self, t_rx: float) -> float:
         """Host time of the SYNC a TPDO received at ``t_rx`` answers: the oldest unanswered SYNC
         (first-in first-out), discarding SYNCs older than two periods + 50 ms (lost answers)."""
-        horizon = t_rx - 2.0 / self.options.sync_hz - 0.05
+        period = 1.0 / self.options.sync_hz if self.options.sync_hz else 0.01
+        horizon = t_rx - 2.0 * period - 0.05
         with self._sync_lock:
             while self._sync_times and self._sync_times[0] < horizon:
                 self._sync_times.popleft()
@@ -343,7 +380,9 @@ class Cia402CanMotor(Cia402Motor):
         if len(data) < 6:
             return
         statusword, position = struct.unpack_from("<Hi", data)
-        t = self._sync_time_for(self.clock())
+        now = self.clock()
+        t = self._sync_time_for(now)
+        self._last_tpdo_rx = now
         self.tpdo_count += 1
         pending, self._pending_tpdo1 = self._pending_tpdo1, (t, statusword, position)
         if pending is not None:  # its TPDO2 never came
@@ -402,7 +441,7 @@ class Cia402CanMotor(Cia402Motor):
             with self._sw_cond:
                 self._sw_cond.notify_all()
             return
-        hb = self.options.heartbeat_ms
+        hb = self._heartbeat_ms
         if not hb or self._last_heartbeat is None or self._host_fault is not None:
             return
         silent_s = self.clock() - self._last_heartbeat
@@ -432,7 +471,7 @@ class Cia402CanMotor(Cia402Motor):
             return
         if fault.source == "bus":
             raise ConnectionLost(fault.code, fault.reason, None, "reopen the motor")
-        hb = self.options.heartbeat_ms
+        hb = self._heartbeat_ms
         if self._last_heartbeat is not None and self._last_heartbeat > fault.t_host_s:
             self._host_fault = None
             return
@@ -454,10 +493,11 @@ class Cia402CanMotor(Cia402Motor):
                 if last is not None and last[0] > t:
                     return last[1]
                 remaining = deadline - self.clock()
-                if remaining <= 0:
+                flowing = self._last_tpdo_rx is not None and self.clock() - self._last_tpdo_rx < 0.25
+                if remaining <= 0 or not flowing:
                     break
                 self._sw_cond.wait(min(remaining, 0.05))
-        # no TPDO in time (SYNC stopped, node not Operational): ask directly
+        # no TPDOs (no SYNC, node not Operational) or none in time: ask directly
         return self._read_object(cia402.STATUSWORD)
 
     @property

@@ -3,9 +3,11 @@
 Actions: ``status``, ``enable``, ``disable``, ``home``, ``move DEG``, ``jog DEG_PER_S``, ``stop``,
 ``reset``. ``move``, ``jog`` and ``home`` enable the drive first if needed; ``move`` and ``home``
 wait for completion. The drive keeps its state when the command ends (a jog keeps turning until
-``lrms motor stop``). Angles are degrees at the output shaft; ``--config FILE`` reads the
-``[motor]`` table of a TOML file as the drive configuration (counts per revolution, gear ratio,
-limits, speeds; see docs/servo.md).
+``lrms motor stop``). ``status`` on a ``canopen+`` URL joins passively (``setup=0&sync_hz=0``:
+no NMT, no re-mapping, no SYNC), so it can watch a drive another process is running.
+Angles are degrees at the output shaft; ``--config FILE`` reads the ``[motor]`` table of a TOML
+file as the drive configuration (counts per revolution, gear ratio, limits, speeds; see
+docs/servo.md).
 """
 
 from __future__ import annotations
@@ -64,7 +66,10 @@ def run(args: argparse.Namespace) -> int:
     config = _load_config(args.config)
     velocity = None if args.velocity is None else math.radians(args.velocity)
     acceleration = None if args.acceleration is None else math.radians(args.acceleration)
-    motor: Motor = open_device("motor", args.motor, config=config)
+    url = args.motor
+    if args.action == "status":
+        url = _passive(url)
+    motor: Motor = open_device("motor", url, config=config)
     try:
         action = args.action
         if action in ("move", "jog", "home") and motor.state is not cia402.State.OPERATION_ENABLED:
@@ -88,6 +93,20 @@ def run(args: argparse.Namespace) -> int:
     finally:
         motor.close()
     return 0
+
+
+def _passive(url: str) -> str:
+    """``status`` must not disturb a master that runs the drive: join a CANopen bus passively
+    (no NMT, no re-mapping, no SYNC of our own) unless the URL says otherwise."""
+    from drivers.url import DeviceURL
+
+    parsed = DeviceURL.parse(url)
+    if not parsed.scheme.startswith("canopen+"):
+        return url
+    extra = [opt for opt in ("setup=0", "sync_hz=0") if not parsed.has(opt.split("=")[0])]
+    if not extra:
+        return url
+    return url + ("&" if "?" in url else "?") + "&".join(extra)
 
 
 def _print_status(motor: object) -> None:

@@ -78,6 +78,7 @@ class SimCanNode:
         self.drive.add_emcy_listener(self._on_drive_emcy)
         self.frames_in = 0
         self.frames_out = 0
+        self.nmt_commands: list[int] = []  # every NMT command addressed to this node, in order
 
     # ------------------------------------------------------------------------------------------
     def start(self) -> SimCanNode:
@@ -175,6 +176,7 @@ class SimCanNode:
                     return
 
     def _nmt(self, command: int) -> None:
+        self.nmt_commands.append(command)
         if command == _NMT_START:
             self.nmt_state = NMT_OPERATIONAL
         elif command == _NMT_STOP:

@@ -44,9 +44,11 @@ class _Client:
     sock: socket.socket
     addr: tuple[str, int]
     channel: str | None = None
-    raw_since: float | None = None  # monotonic time rawmode was acknowledged
+    raw_since: float | None = None  # monotonic time raw mode began (frames are queued from then)
+    ok_time: float = 0.0  # monotonic time its "< ok >" was sent
     lock: threading.Lock = field(default_factory=threading.Lock)
     frames: queue.SimpleQueue[str | None] = field(default_factory=queue.SimpleQueue)
+    ok_sent: threading.Event = field(default_factory=threading.Event)  # raw mode's "< ok >" is out
 
     def send(self, text: str) -> None:
         data = text.encode("ascii")
@@ -60,8 +62,9 @@ class _Client:
             text = self.frames.get()
             if text is None:
                 return
-            if first and self.raw_since is not None:
-                wait = self.raw_since + delay_s - time.monotonic()
+            if first:
+                self.ok_sent.wait()
+                wait = self.ok_time + delay_s - time.monotonic()
                 if wait > 0:
                     time.sleep(wait)
                 first = False
@@ -130,6 +133,7 @@ class SocketcandServer:
             clients, self._clients = self._clients, []
         for c in clients:
             c.frames.put(None)
+            c.ok_sent.set()
             _close_socket(c.sock)
         for t in self._threads:
             if t is not threading.current_thread():
@@ -197,6 +201,7 @@ class SocketcandServer:
                 if client in self._clients:
                     self._clients.remove(client)
             client.frames.put(None)
+            client.ok_sent.set()
             _close_socket(client.sock)
 
     def _handle(self, client: _Client, command: str) -> None:
@@ -215,11 +220,15 @@ class SocketcandServer:
             if client.channel is None:
                 client.send("< error no bus open >")
             else:
-                client.send("< ok >")
+                # in raw mode before the client hears "ok": frames sent by others from the moment
+                # it returns are queued for it (and held back join_delay_s, after the "ok")
                 client.raw_since = time.monotonic()
                 threading.Thread(
                     target=client.writer, args=(self.join_delay_s,), name=f"socketcand-w{client.addr[1]}", daemon=True
                 ).start()
+                client.send("< ok >")
+                client.ok_time = time.monotonic()
+                client.ok_sent.set()
         elif verb == "send":
             if client.raw_since is None:
                 client.send("< error not in raw mode >")

@@ -303,3 +303,44 @@ def test_two_threads_share_one_motor(motor: Cia402CanMotor) -> None:
     t.join()
     assert not errors
     assert math.degrees(motor.position_rad()) == pytest.approx(1.0, abs=0.01)
+
+
+def test_passive_second_master_watches_without_disturbing() -> None:
+    channel = f"lrms-test-passive-{time.monotonic_ns()}"
+    node = SimCanNode(can.Bus(interface="virtual", channel=channel), node_id=2).start()
+    bus_kw = {"interface": "virtual", "channel": channel}
+    try:
+        with Cia402CanMotor.open_bus(bus_kw, CanUrlOptions(node=2), config=FAST) as owner:
+            owner.enable()
+            owner.jog(math.radians(10.0))
+            commands_before = list(node.nmt_commands)
+            watcher = Cia402CanMotor.open_bus(bus_kw, CanUrlOptions(node=2, setup=False, sync_hz=0), config=FAST)
+            with watcher:
+                assert node.nmt_commands == commands_before  # no NMT from the watcher
+                start = watcher.sample_count
+                wait_for(lambda: watcher.sample_count - start >= 20)
+                assert watcher.sync_count == 0  # it produced no SYNC: the owner's were stamped
+                a = watcher.sample_arrays_since()
+                assert np.all(np.diff(a.t_host_s) > 0)
+                assert watcher.state is State.OPERATION_ENABLED
+                assert watcher.fault() is None
+                # both see the same samples (same SYNCs, stamped in each process's receive path)
+                mine = owner.latest_sample()
+                theirs = watcher.latest_sample()
+                assert mine is not None and theirs is not None
+                assert abs(mine.t_host_s - theirs.t_host_s) < 0.1
+            owner.stop()
+            owner.wait_reached(2.0)
+        # alone on the bus (no SYNC anywhere): status by SDO, no samples
+        with Cia402CanMotor.open_bus(bus_kw, CanUrlOptions(node=2, setup=False, sync_hz=0), config=FAST) as alone:
+            assert alone.state is State.OPERATION_ENABLED
+            assert alone.sample_count == 0
+            assert alone.position_rad() > 0.0  # by SDO
+    finally:
+        node.stop()
+        node.bus.shutdown()
+
+
+def test_sync_rate_option_values() -> None:
+    with pytest.raises(DeviceURLError, match="sync_hz"):
+        open_device("motor", "canopen+virtual://x?node=1&sync_hz=5")
