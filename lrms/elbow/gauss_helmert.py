@@ -220,6 +220,7 @@ def fit_elbow(
     tol: float = 1e-9,
     robust_start: bool = True,
     robust_only: bool = False,
+    fallback: bool = True,
     axis_gate: float = AXIS_GATE,
 ) -> ElbowFit:
     """Adjust the elbow model to ``points`` (n, 3) from the initial values ``init``.
@@ -232,7 +233,8 @@ def fit_elbow(
     flange points handed to the bend by a slightly wrong start, count less) and finish with plain
     least squares; the result is the least-squares solution either way. ``robust_only`` stops
     after the Huber iterations (an M-estimate, for trimming outliers before the real fit; its
-    statistics are computed as for least squares and are only indicative).
+    statistics are computed as for least squares and are only indicative). ``fallback``: finish
+    with the trust-region solver when the Gauss-Newton steps stall (else raise).
     ``axis_gate``: points closer to the torus axis than ``axis_gate`` robust residual standard
     deviations (but at most ``AXIS_GATE_MAX`` tube radii) are left out; 0 keeps all. Only sharp
     elbows (``A`` near ``D/2``) have surface there: the horn torus pinches to its axis, the
@@ -356,7 +358,7 @@ def fit_elbow(
             converged = True
             break
     solver = "gauss-helmert"
-    if not converged and not robust_only:
+    if not converged and not robust_only and fallback:
         # the Gauss-Newton steps stall on the piecewise-smooth cost: finish with a trust-region
         # least-squares solver on the same residuals (orthogonal distances over sqrt(M))
         params, vpv = _trust_region_polish(pts, params, ratio, has_flange, q, use, max_iter)
