@@ -84,8 +84,9 @@ def random_pose(rng: np.random.Generator, extent: float = 5.0) -> tuple[FloatArr
     return center, rotation_matrix(omega, psi, kappa)
 
 
-def _centre_line(s: FloatArray, a: float, d: float, l1: float,
-                 l2: float) -> tuple[FloatArray, FloatArray, NDArray[np.int64]]:
+def _centre_line(
+    s: FloatArray, a: float, d: float, l1: float, l2: float
+) -> tuple[FloatArray, FloatArray, NDArray[np.int64]]:
     """Centre point, outward in-plane normal and portion for arc-length ``s`` from the start leg's end."""
     theta0 = math.pi / 2 + d
     c = np.zeros((s.size, 3))
