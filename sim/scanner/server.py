@@ -268,7 +268,7 @@ class ScannerServer:
         dev = self.device
         next_index: int | None = None
         while not self._stop.is_set():
-            wait_until = 0.0
+            wait_until = send_at = 0.0
             with dev.changed:
                 if not self._subscribed_clients() or not dev.streaming():
                     next_index = None
@@ -279,7 +279,11 @@ class ScannerServer:
                     index = latest + 1 if next_index is None else max(next_index, latest, dev.epoch_index)
                     while not dev.is_output_scan(index):
                         index += 1
-                    wait_until = dev.clock.monotonic_at(dev.timing(index).transmit_us)
+                    timing = dev.timing(index)
+                    # Cast once the last beam has been fired (the motor's history is complete
+                    # then), send at the scan's time of transmission.
+                    wait_until = dev.clock.monotonic_at(timing.end_us)
+                    send_at = dev.clock.monotonic_at(timing.transmit_us)
                 else:
                     index = dev.next_virtual_index()
                     while not dev.is_output_scan(index):
@@ -305,6 +309,9 @@ class ScannerServer:
                 next_index = None
                 self._stop.wait(0.1)
                 continue
+            delay = send_at - time.monotonic()
+            if delay > 0 and self._stop.wait(delay):
+                return
             self.scans_sent += 1
             event: list[Message] = [ScanDataEvent(scan)]
             for client in self._subscribed_clients():
