@@ -182,21 +182,22 @@ def test_torus_from_inside_the_tube_and_far_away() -> None:
     np.testing.assert_allclose(n[1], [0, -1, 0], atol=1e-9)
 
 
-def test_torus_random_rays_land_on_the_surface_inside_the_section() -> None:
+@pytest.mark.parametrize(("big_a", "r"), [(0.4, 0.1), (0.1, 0.1), (1.0, 0.01)])  # ring, horn (0.5D elbow), thin
+def test_torus_random_rays_land_on_the_surface_inside_the_section(big_a: float, r: float) -> None:
     rng = np.random.default_rng(4)
     axis = np.array([0.3, -0.2, 1.0])
-    tor = TorusSection((0.5, 3.0, 0.2), axis, 0.4, 0.1, np.deg2rad(135), start=(1, 1, 0))
+    tor = TorusSection((0.5, 3.0, 0.2), axis, big_a, r, np.deg2rad(135), start=(1, 1, 0))
     o = rng.normal(0, 0.05, (4000, 3))
-    target = tor.center + rng.normal(0, 0.3, (4000, 3))
+    target = tor.center + rng.normal(0, 0.8 * big_a, (4000, 3))
     d = target - o
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     t, n = tor.intersect(o, d)
     hit = np.isfinite(t)
-    assert 500 < hit.sum() < 4000
+    assert 10 < hit.sum() < 4000
     p = o[hit] + t[hit, None] * d[hit]
     loc = (p - tor.center) @ tor._frame
     rho = np.hypot(loc[:, 0], loc[:, 1])
-    np.testing.assert_allclose(np.hypot(rho - 0.4, loc[:, 2]), 0.1, atol=1e-12)
+    np.testing.assert_allclose(np.hypot(rho - big_a, loc[:, 2]), r, atol=1e-12)
     assert np.all(tor.angle_of(p) <= np.deg2rad(135) + 1e-12)
     np.testing.assert_allclose(np.linalg.norm(n[hit], axis=1), 1.0)
     # The first hit: the ray crosses no part of the section's surface before it. Sampled densely:
@@ -205,11 +206,12 @@ def test_torus_random_rays_land_on_the_surface_inside_the_section() -> None:
     s = np.linspace(0, 1, 400)[None, :] * t[hit, None]
     q = o[hit, None, :] + s[..., None] * d[hit, None, :]
     ql = (q - tor.center) @ tor._frame
-    inside = np.hypot(np.hypot(ql[..., 0], ql[..., 1]) - 0.4, ql[..., 2]) < 0.1
+    inside = np.hypot(np.hypot(ql[..., 0], ql[..., 1]) - big_a, ql[..., 2]) < r
     in_section = tor.angle_of(q) <= np.deg2rad(135)
     crossing = (inside[:, 1:] != inside[:, :-1]) & in_section[:, 1:] & in_section[:, :-1]
     assert not crossing[:, :-1].any()
-    assert (inside[:, :-1] & in_section[:, :-1]).any()  # some rays enter through an open end
+    if r < big_a:
+        assert (inside[:, :-1] & in_section[:, :-1]).any()  # some rays enter through an open end
 
 
 @pytest.mark.parametrize(
