@@ -385,6 +385,10 @@ def test_bad_server_and_device_arguments() -> None:
         SimulatedLMS100("empty", time_scale=0.0)
     with pytest.raises(SimulatorError):
         SimulatedLMS100("empty", serial_number=-1)
+    with ScannerServer(SimulatedLMS100("empty")) as busy, pytest.raises(SimulatorError, match="cannot listen"):
+        ScannerServer(SimulatedLMS100("empty"), port=busy.address[1]).start()
+    with pytest.raises(SimulatorError, match="not started"):
+        _ = ScannerServer(SimulatedLMS100("empty")).address
 
 
 def test_a_login_left_open_ends_with_its_connection(fast_server: ScannerServer, connect: Connect) -> None:
