@@ -12,9 +12,10 @@ other interface the host part (or the path) is the channel. Options:
                               0 = another master produces SYNC (its SYNCs are timestamped here)
 ``setup``          1          configure the node on open (NMT, heartbeat, PDO mapping, windows);
                               0 = join a drive another master has set up, changing nothing
-``heartbeat_ms``   50         heartbeat period written to the drive's 0x1017 (0 = no watchdog;
+``heartbeat_ms``   100        heartbeat period written to the drive's 0x1017 (0 = no watchdog;
                               with ``setup=0`` the drive's own 0x1017 is used)
-``heartbeat_lost`` 3.5        the drive is lost after this many heartbeat periods of silence
+``heartbeat_lost`` 5          the drive is lost after this many heartbeat periods of silence
+                              (0.5 s by default: simulated drives share busy CPUs)
 ``sdo_timeout``    0.5        seconds to wait for each SDO response
 ``bitrate``        (none)     passed to python-can for interfaces that need it
 ``counts_per_rev`` (config)   encoder counts per motor revolution, overrides the DriveConfig
@@ -86,8 +87,8 @@ class CanUrlOptions:
     node: int = 1
     sync_hz: float = 200.0
     setup: bool = True
-    heartbeat_ms: int = 50
-    heartbeat_lost: float = 3.5
+    heartbeat_ms: int = 100
+    heartbeat_lost: float = 5.0
     sdo_timeout: float = 0.5
     counts_per_rev: int | None = None
     gear_ratio: float | None = None
@@ -107,8 +108,8 @@ def read_url_options(url: DeviceURL) -> CanUrlOptions:
         node=url.get_int("node", 1, lo=1, hi=127),
         sync_hz=_sync_rate(url),
         setup=url.get_bool("setup", True),
-        heartbeat_ms=url.get_int("heartbeat_ms", 50, lo=0, hi=65535),
-        heartbeat_lost=url.get_float("heartbeat_lost", 3.5, lo=1.5, hi=100.0),
+        heartbeat_ms=url.get_int("heartbeat_ms", 100, lo=0, hi=65535),
+        heartbeat_lost=url.get_float("heartbeat_lost", 5.0, lo=1.5, hi=100.0),
         sdo_timeout=url.get_float("sdo_timeout", 0.5, lo=0.01, hi=30.0),
         counts_per_rev=url.get_int("counts_per_rev", lo=1) if url.has("counts_per_rev") else None,
         gear_ratio=url.get_float("gear_ratio") if url.has("gear_ratio") else None,

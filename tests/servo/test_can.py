@@ -38,7 +38,7 @@ FAST = DriveConfig(
 
 @pytest.fixture
 def motor() -> Iterator[Cia402CanMotor]:
-    # a tolerant heartbeat (lost after 350 ms) so a busy test machine does not fake a loss
+    # the default heartbeat, lost after 5 x 100 ms: a busy test machine does not fake a loss
     m = open_device("motor", "sim://?node=5&heartbeat_ms=100", config=FAST)
     try:
         yield m
