@@ -12,8 +12,8 @@ Behaviour modelled after the LMS1xx (``shared/reference/sick-cola.md``):
   (METHODIN_ACCESSDENIED) and variable writes ``sFA A`` (VARIABLE_WRITE_ACCESSDENIED).
 * Logging in puts the device in configuration mode: no scans leave it (stream or poll) until
   ``sMN Run``, which also ends that connection's login.
-* ``mLMPsetscancfg`` accepts only what an LMS1xx accepts: 25 Hz at 0.25 or 0.5 deg, 50 Hz at
-  0.5 deg, one sector, a scan area within -45..225 deg; otherwise the reply's status byte says
+* ``mLMPsetscancfg`` accepts only what an LMS1xx accepts: 25 Hz at 0.25 deg and 50 Hz at
+  0.5 deg (both 36,000 shots/s), one sector, a scan area within -45..225 deg; otherwise the reply's status byte says
   why (1 frequency, 2 resolution, 3 both, 4 area, 5 other) and the applied configuration stays.
 * ``LMCstartmeas`` / ``LMCstopmeas`` switch measuring (STlms 7) on and off; the device boots
   measuring. ``mEEwriteall`` saves the configuration, ``mSCreboot`` restores the saved one.
@@ -115,7 +115,7 @@ SFA_COLA_A_INVALID_CHARACTER = 0x11
 SFA_INTERNAL = 0x14
 
 #: Accepted (scan frequency 1/100 Hz, angular resolution 1/10000 deg) pairs of an LMS1xx.
-ALLOWED_SCAN_CONFIGS = frozenset({(2500, 2500), (2500, 5000), (5000, 5000)})
+ALLOWED_SCAN_CONFIGS = frozenset({(2500, 2500), (5000, 5000)})
 FIELD_START = -450000  # 1/10000 deg
 FIELD_STOP = 2250000
 #: The scan is handed to the interface this long after its last beam (us).

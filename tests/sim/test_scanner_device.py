@@ -121,7 +121,7 @@ def test_access_levels_and_passwords(fast_server: ScannerServer, connect: Connec
     ("hz", "deg", "status"),
     [
         (25, 0.25, 0),
-        (25, 0.5, 0),
+        (25, 0.5, 2),  # 25 Hz only at 0.25 deg
         (50, 0.5, 0),
         (50, 0.25, 2),  # 50 Hz only at 0.5 deg
         (35, 0.5, 1),
@@ -292,7 +292,7 @@ def test_reboot_restores_saved_configuration(fast_server: ScannerServer, connect
     login(link)
     assert isinstance(link.request(SetScanConfig.from_hz_deg(50, 0.5)), SetScanConfigReply)
     link.request(SaveParameters())
-    assert isinstance(link.request(SetScanConfig.from_hz_deg(25, 0.5)), SetScanConfigReply)
+    assert isinstance(link.request(SetScanConfig.from_hz_deg(25, 0.25)), SetScanConfigReply)
     assert link.request(Reboot()) == RebootReply()
     with pytest.raises((ConnectionError, OSError)):
         link.request(ReadDeviceState())
