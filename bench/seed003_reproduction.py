@@ -90,7 +90,7 @@ def lrms_sweep(
     clutter objects, scene "seed003"; else scene "seed003-bare"); the motor turns from -35 to 75 deg
     in ``motor_step_deg``. With ``crop`` the cloud is cut to a box around the table (as an
     operator's region of interest would), then ``clutter`` times as many uniform random points
-    are added in that box. Returns the rig-frame cloud (shuffled), the true cylinder, and the
+    are added in that box where the part does not hide them (not inside or behind it). Returns the rig-frame cloud (shuffled), the true cylinder, and the
     nominal beams that returned an echo from the cylinder (for the Cramer-Rao bound).
     """
     from lrms.kinematics import RigCalibration
@@ -98,6 +98,7 @@ def lrms_sweep(
         SEED003_AXIS_DIRECTION,
         SEED003_AXIS_POINT,
         SEED003_DIAMETER,
+        SEED003_HEIGHT,
         SensorModel,
         cast_beams,
         lms1xx_device_angles,
@@ -119,11 +120,20 @@ def lrms_sweep(
     hi = c0 + np.array([0.6, 0.4, 0.9])
     if crop:
         pts = pts[np.all((pts >= lo) & (pts <= hi), axis=1)]
+    part = Cylinder(c0, np.asarray(SEED003_AXIS_DIRECTION, dtype=float), SEED003_DIAMETER / 2)
     n_clutter = int(round(clutter * pts.shape[0]))
     if n_clutter:
-        pts = np.vstack([pts, rng.uniform(lo, hi, (n_clutter, 3))])
+        junk = np.empty((0, 3))
+        while junk.shape[0] < n_clutter:  # physical clutter: not inside or behind the part
+            cand = rng.uniform(lo, hi, (2 * n_clutter, 3))
+            r = rays_from_points(cand, cal.p)
+            t, gap = part.ray_range(r.origins, r.dirs)
+            hit_z = (r.origins + t[:, None] * r.dirs)[:, 2]
+            occluded = (gap == 0) & (t < r.ranges) & (hit_z >= c0[2]) & (hit_z <= c0[2] + SEED003_HEIGHT)
+            junk = np.vstack([junk, cand[~occluded]])
+        pts = np.vstack([pts, junk[:n_clutter]])
     pts = pts[rng.permutation(pts.shape[0])]
-    return pts, Cylinder(c0, np.asarray(SEED003_AXIS_DIRECTION, dtype=float), SEED003_DIAMETER / 2), part_rays
+    return pts, part, part_rays
 
 
 @dataclass

@@ -51,7 +51,9 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
 #: Inlier gate on the whitened residual during refinement.
-INLIER_GATE = 3.5
+INLIER_GATE = 4.0
+#: Largest miss distance of an inlier's beam, in lateral standard deviations.
+MISS_GATE = 2.0
 #: Floor (m) of the lateral standard deviation that scales a beam's miss distance. The
 #: angular noise alone (``l sigma_alpha``, 0.08 mm at 2.5 m) would make the fit hostage to the
 #: last fraction of a millimetre at the silhouette, where real returns are mixed pixels of a
@@ -548,7 +550,10 @@ def refine_cylinder(
     def whitened_all(c: Cylinder) -> FloatArray:
         if rays is not None:
             t, gap = c.ray_range(rays.origins, rays.dirs)
-            return np.asarray(np.hypot((rays.ranges - t) / rays.sigma_l, gap / rays.sigma_perp), dtype=np.float64)
+            # a beam may miss the model by at most MISS_GATE lateral sigmas: limb beams of the part
+            # miss by a fraction of a millimetre, clutter beside the silhouette by more
+            miss = gap / rays.sigma_perp * (gate / MISS_GATE) if np.isfinite(gate) else np.zeros_like(gap)
+            return np.asarray(np.maximum(np.abs(rays.ranges - t) / rays.sigma_l, miss), dtype=np.float64)
         return np.asarray(np.abs(c.surface_distance(pts)) / sig, dtype=np.float64)
 
     idx = np.flatnonzero(whitened_all(cyl) < gate) if use_los else np.arange(pts.shape[0])
@@ -574,7 +579,13 @@ def refine_cylinder(
             sig = max(float(np.sqrt(np.mean(np.square(cyl.surface_distance(pts[idx]))))), 1e-9)
         if round_ == max_rounds - 1:
             break
-        new_idx = np.flatnonzero(whitened_all(cyl) < gate)
+        # hysteresis: a point joins below ``gate`` and leaves only above 1.5 ``gate``, so the
+        # few limb beams that carry most of the information on the radius are not dropped by a
+        # model that is still moving
+        wa = whitened_all(cyl)
+        member = np.zeros(pts.shape[0], dtype=bool)
+        member[idx] = True
+        new_idx = np.flatnonzero((wa < gate) | (member & (wa < 1.5 * gate)))
         if np.array_equal(new_idx, idx):
             break
         idx = new_idx
@@ -731,6 +742,38 @@ def support_plane(pts: FloatArray, cyl: Cylinder, opt: DetectOptions) -> tuple[F
     return model.normal, model.offset
 
 
+#: Radius offsets (in units of sigma_l) of the extra starts of the line-of-sight fit.
+MULTISTART = (-0.2, -0.1, 0.1, 0.2)
+
+
+def _multistart(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: DetectOptions) -> CylinderFit:
+    """Restart the line-of-sight fit from radii around the solution and keep the lowest cost.
+
+    The range residual of a beam near the silhouette has a kink where the beam becomes tangent
+    (the hit range varies like a square root of the radius there), so the likelihood has
+    several local minima a few tenths of sigma_l apart; one LM run from the orthogonal fit's
+    (biased) start does not always reach the best. The starts are compared on the same inliers
+    (a random subset of at most ``work`` of them for large clouds), the winner is refined on all.
+    """
+    idx = fit.inliers
+    work = 20_000
+    sel = idx if idx.size <= work else np.sort(np.random.default_rng(2).choice(idx, work, replace=False))
+    sub_pts, sub_rays = pts[sel], rays.subset(sel)
+    sig = float(np.median(rays.sigma_l))
+    best_cyl, best_cost = fit.cylinder, np.inf
+    for dr in (0.0, *MULTISTART):
+        start = Cylinder(fit.cylinder.point, fit.cylinder.direction, fit.cylinder.radius + dr * sig)
+        try:
+            trial = refine_cylinder(sub_pts, start, rays=sub_rays, gate=np.inf, max_rounds=1)
+        except FitError:
+            continue
+        if trial.chi2_dof < best_cost:
+            best_cyl, best_cost = trial.cylinder, trial.chi2_dof
+    if best_cyl is fit.cylinder:
+        return fit
+    return refine_cylinder(pts, best_cyl, rays=rays, max_rounds=2)
+
+
 def _refine_from(
     pts: FloatArray,
     initial: Cylinder,
@@ -755,6 +798,7 @@ def _refine_from(
         if cand.size < opt.min_inliers:
             raise FitError(f"no cylinder found: only {cand.size} points on the candidate's lines of sight")
         fit = refine_cylinder(pts[cand], rough.cylinder, rays=rays.subset(cand), max_rounds=4)
+        fit = _multistart(pts[cand], rays.subset(cand), fit, opt)
     else:
         cand = np.flatnonzero(np.abs(rough.cylinder.surface_distance(pts)) < 2.0 * opt.threshold)
         if cand.size < opt.min_inliers:
