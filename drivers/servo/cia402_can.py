@@ -27,8 +27,9 @@ heartbeat, maps TPDO1 = statusword + position actual and TPDO2 = velocity actual
 error (both transmission type 1, every SYNC), writes the configured windows and limits, starts
 the node (Operational), and runs its own SYNC producer thread. Every TPDO1 is stamped with the
 host time of the SYNC it answers (paired first-in first-out, so a TPDO that arrives after the
-next SYNC still gets its own SYNC's time); a sample is emitted when the matching TPDO2 arrives,
-and only then do waits on the statusword see it (so a wait that returned has its sample stored).
+next SYNC still gets its own SYNC's time; CAN keeps order and does not drop frames); a sample
+is emitted when the matching TPDO2 arrives, and only then do waits on the statusword see it
+(so a wait that returned has its sample stored).
 The controlword is written by SDO (each command confirmed by the drive). ``close()`` stops the
 SYNC and the watchdog and releases the bus; it leaves the drive's state alone.
 
@@ -191,7 +192,11 @@ class Cia402CanMotor(Cia402Motor):
         self._sw_cond = threading.Condition()
         self._last_sw: tuple[float, int] | None = None  # (SYNC time, statusword)
         self._pending_tpdo1: tuple[float, int, int] | None = None  # (SYNC time, statusword, position)
-        self._sync_times: collections.deque[float] = collections.deque(maxlen=64)
+        # unanswered SYNCs, oldest first; more than 0.5 s of them means answers were lost
+        outstanding = max(8, round(0.5 * (self.options.sync_hz or 100.0)))
+        self._sync_times: collections.deque[float] = collections.deque(maxlen=outstanding)
+        #: host time of every SYNC sent (or seen, with sync_hz=0), newest last: diagnostics
+        self.sync_history: collections.deque[float] = collections.deque(maxlen=4096)
         self._sync_lock = threading.Lock()
         self._last_heartbeat: float | None = None
         self._heartbeat_ms = self.options.heartbeat_ms
@@ -332,7 +337,9 @@ class Cia402CanMotor(Cia402Motor):
     def _on_sync_seen(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """Another master's SYNC (``sync_hz=0``): stamp it on arrival."""
         with self._sync_lock:
-            self._sync_times.append(self.clock())
+            t = self.clock()
+            self._sync_times.append(t)
+            self.sync_history.append(t)
 
     def _sync_loop(self) -> None:
         if not self.options.sync_hz:  # SYNC comes from elsewhere: only watch
@@ -349,6 +356,7 @@ class Cia402CanMotor(Cia402Motor):
             t_sync = self.clock()
             with self._sync_lock:
                 self._sync_times.append(t_sync)
+                self.sync_history.append(t_sync)
             try:
                 self.network.send_message(0x080, b"")
                 self.sync_count += 1
@@ -367,12 +375,10 @@ class Cia402CanMotor(Cia402Motor):
 
     def _sync_time_for(self, t_rx: float) -> float:
         """Host time of the SYNC a TPDO received at ``t_rx`` answers: the oldest unanswered SYNC
-        (first-in first-out), discarding SYNCs older than two periods + 50 ms (lost answers)."""
-        period = 1.0 / self.options.sync_hz if self.options.sync_hz else 0.01
-        horizon = t_rx - 2.0 * period - 0.05
+        (first-in first-out: CAN keeps frame order and does not drop frames, so this holds
+        however late the TPDO is). SYNCs the drive cannot answer are forgotten when its heartbeat
+        says it is not Operational, and the queue keeps at most 0.5 s of SYNCs."""
         with self._sync_lock:
-            while self._sync_times and self._sync_times[0] < horizon:
-                self._sync_times.popleft()
             if self._sync_times:
                 return self._sync_times.popleft()
         return t_rx
@@ -410,6 +416,9 @@ class Cia402CanMotor(Cia402Motor):
             return
         self._last_heartbeat = self.clock()
         self._heartbeat_state = data[0]
+        if data[0] != 0x05:  # not Operational: it answers no SYNC, none is outstanding
+            with self._sync_lock:
+                self._sync_times.clear()
 
     def _on_emcy(self, can_id: int, data: bytearray, timestamp: float) -> None:
         try:

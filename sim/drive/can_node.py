@@ -20,6 +20,7 @@ python-can ``virtual`` channel and returns the CANopen driver connected to it.
 
 from __future__ import annotations
 
+import collections
 import itertools
 import logging
 import struct
@@ -79,6 +80,10 @@ class SimCanNode:
         self.frames_in = 0
         self.frames_out = 0
         self.nmt_commands: list[int] = []  # every NMT command addressed to this node, in order
+        #: (drive clock, position actual) at every SYNC received, newest last
+        self.sync_log: collections.deque[tuple[float, int]] = collections.deque(maxlen=2000)
+        #: extra delay before the synchronous TPDOs of a SYNC leave (a slow drive or a busy bus)
+        self.tpdo_latency_s = 0.0
 
     # ------------------------------------------------------------------------------------------
     def start(self) -> SimCanNode:
@@ -225,11 +230,11 @@ class SimCanNode:
         for k, data in sorted(self._rpdo_pending.items()):
             self._apply_rpdo(k, data)
         self._rpdo_pending.clear()
-        if self.nmt_state != NMT_OPERATIONAL:
-            return
         frames: list[tuple[int, bytes]] = []
-        with self.drive.lock:  # one snapshot for every synchronous TPDO of this SYNC
-            self.drive.advance()
+        with self.drive.latched():  # one snapshot for every synchronous TPDO of this SYNC
+            self.sync_log.append((self.drive.clock(), self.drive.read(cia402.POSITION_ACTUAL)))
+            if self.nmt_state != NMT_OPERATIONAL:
+                return
             for k in range(4):
                 cob = int(self.drive.raw(cia402.TPDO_COMM + k, 1))
                 ttype = int(self.drive.raw(cia402.TPDO_COMM + k, 2))
@@ -240,6 +245,12 @@ class SimCanNode:
                 if self._tpdo_sync_counter[k] >= every:
                     self._tpdo_sync_counter[k] = 0
                     frames.append((cob & 0x7FF, self._pack_tpdo(k)))
+        if self.tpdo_latency_s > 0:
+            threading.Timer(self.tpdo_latency_s, self._send_all, args=(frames,)).start()
+        else:
+            self._send_all(frames)
+
+    def _send_all(self, frames: list[tuple[int, bytes]]) -> None:
         for cob, data in frames:
             self._send(cob, data)
 

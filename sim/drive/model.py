@@ -24,10 +24,11 @@ Units: position in encoder counts, velocity counts/s, accelerations counts/s², 
 
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 from drivers.servo import cia402
@@ -115,6 +116,7 @@ class SimDrive:
         # injected conditions
         self.stalled = False
         self.silent = False
+        self._frozen = 0
 
     def _defaults_for_node(self) -> None:
         n = self.node_id
@@ -500,9 +502,23 @@ class SimDrive:
     # ------------------------------------------------------------------------------------------
     # physics
     # ------------------------------------------------------------------------------------------
+    @contextlib.contextmanager
+    def latched(self) -> Iterator[None]:
+        """Hold the lock and the drive's time: every read inside sees the same instant (a PDO
+        snapshot at SYNC)."""
+        with self.lock:
+            self.advance()
+            self._frozen += 1
+            try:
+                yield
+            finally:
+                self._frozen -= 1
+
     def advance(self, now: float | None = None) -> None:
         """Integrate the motion up to ``now`` (default: the clock's present instant)."""
         with self.lock:
+            if self._frozen:
+                return
             t_end = self.clock() if now is None else now
             while self._t < t_end:
                 dt = min(self.max_step_s, t_end - self._t)

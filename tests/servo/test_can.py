@@ -344,3 +344,30 @@ def test_passive_second_master_watches_without_disturbing() -> None:
 def test_sync_rate_option_values() -> None:
     with pytest.raises(DeviceURLError, match="sync_hz"):
         open_device("motor", "canopen+virtual://x?node=1&sync_hz=5")
+
+
+def test_late_tpdos_keep_their_own_sync_stamp() -> None:
+    # TPDOs leave 1.5 SYNC periods late: each sample still carries the time of the SYNC it
+    # answers. The i-th SYNC sent is the i-th the node received (same bus, in order); the
+    # sample stamped with SYNC i must hold the position the drive latched at SYNC i.
+    with open_device("motor", "sim://?node=8&sync_hz=100") as m:
+        assert isinstance(m, Cia402CanMotor)
+        node = m.sim_node
+        m.enable()
+        m.jog(math.radians(30.0))
+        wait_for(lambda: abs(math.degrees(m.velocity_rad_s()) - 30.0) < 0.1)
+        node.tpdo_latency_s = 0.015
+        t0 = m.clock() + 0.1
+        wait_for(lambda: len(m.samples_since(t0)) >= 40, timeout=10.0)
+        sent = list(m.sync_history)
+        latched = [p for _, p in node.sync_log]
+        assert len(sent) < 4096 and len(latched) < 2000  # nothing dropped from either history
+        index = {t: i for i, t in enumerate(sent)}
+        samples = m.samples_since(t0)
+        for s in samples:
+            i = index[s.t_host_s]  # every stamp is the send time of one of our SYNCs
+            assert FAST.rad_to_counts(s.position_rad) == latched[i]
+        # and they are consecutive SYNCs: none skipped, none used twice
+        ids = [index[s.t_host_s] for s in samples]
+        assert ids == list(range(ids[0], ids[0] + len(ids)))
+        m.stop()
