@@ -208,12 +208,14 @@ def critical_point_interval(
     k: float = 1.0,
     p: float = kinematics.DEFAULT_P,
     percentile: float = CRITICAL_PERCENTILE,
+    isotropic_sigma: float | None = None,
 ) -> CriticalPointInterval:
     """Eq. 8-12 with the seed's 25th-percentile critical point.
 
     The ellipsoids sit on ``surface_points`` (points on ``cyl``, as in the seed's simulation), or,
     given ``rays`` (the inliers' beams of a measurement), on the points where those beams meet the
-    fitted cylinder. Covariances come from Eq. 7 with the rig at the origin (inner parameter ``p``).
+    fitted cylinder. Covariances come from Eq. 7 with the rig at the origin (inner parameter ``p``),
+    or are ``isotropic_sigma^2 I`` when given (clouds whose beams are unknown).
     """
     kk = _check_k(k)
     if not 0 <= percentile <= 100:
@@ -226,7 +228,12 @@ def critical_point_interval(
         raise LrmsError("give surface_points or rays")
     if pts.shape[0] == 0:
         raise FitError("no points for the critical-point interval")
-    covs = covariances_of_points(pts, noise, p)
+    if isotropic_sigma is not None:
+        if not np.isfinite(isotropic_sigma) or isotropic_sigma <= 0:
+            raise LrmsError(f"isotropic_sigma must be > 0, got {isotropic_sigma}")
+        covs = np.broadcast_to(np.eye(3) * isotropic_sigma**2, (pts.shape[0], 3, 3))
+    else:
+        covs = covariances_of_points(pts, noise, p)
     radii = centripetal_radii(cyl, pts, covs, kk)
     order = np.argsort(radii, kind="stable")
     pos = int(np.floor(percentile / 100.0 * (radii.size - 1)))
@@ -352,8 +359,10 @@ def _replica_problem(
 
 def monte_carlo_interval(
     fit: CylinderFit,
-    rays: Rays,
+    rays: Rays | None = None,
     *,
+    points: ArrayLike | None = None,
+    isotropic_sigma: float | None = None,
     noise: NoiseModel | None = None,
     n: int = 200,
     coverage: float = 0.95,
@@ -363,9 +372,12 @@ def monte_carlo_interval(
 ) -> MonteCarloResult:
     """GUM-S1 interval: re-simulate the inliers' beams from the fitted cylinder, refit, quantiles.
 
-    ``rays`` are the beams of the fit's inliers (``rays.subset(fit.inliers)``). For an
-    orthogonal-distance fit the replicas are refitted with orthogonal distances too, so the
-    interval describes that estimator.
+    ``rays`` are the beams of the fit's inliers (``rays.subset(fit.inliers)``); the replicas get
+    the rig's noise (Eq. 5) on every beam. For an orthogonal-distance fit the replicas are
+    refitted with orthogonal distances too, so the interval describes that estimator. Without
+    rays (clouds from elsewhere), give the inlier ``points`` of an orthogonal fit: their radial
+    projections on the cylinder get isotropic Gaussian noise of ``isotropic_sigma`` (default:
+    the fit's rms residual).
     """
     if n < 10:
         raise LrmsError(f"Monte Carlo needs at least 10 replicas, got {n}")
@@ -374,18 +386,35 @@ def monte_carlo_interval(
     nm = noise if noise is not None else NoiseModel()
     g = rng if rng is not None else np.random.default_rng()
     cyl = fit.cylinder
-    truth = ideal_points(cyl, rays)
-    l0, a0, b0 = kinematics.inverse(truth, p)
     frame = _Frame.at(cyl)
+    iso: float | None = None
+    if rays is not None:
+        truth = ideal_points(cyl, rays)
+    elif points is not None and not fit.line_of_sight:
+        pp = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        rad = cyl.radial(pp)
+        truth = pp - rad * (1.0 - cyl.radius / np.linalg.norm(rad, axis=1))[:, None]
+        iso = float(isotropic_sigma) if isotropic_sigma is not None else fit.rmse
+        if not np.isfinite(iso) or iso <= 0:
+            raise LrmsError(f"isotropic sigma must be > 0, got {iso}")
+    else:
+        raise LrmsError("Monte Carlo needs the inliers' rays (or, for an orthogonal fit, their points)")
+    l0, a0, b0 = kinematics.inverse(truth, p)
     m_pts = truth.shape[0]
     chunk = max(1, int(1_500_000 // (10 * max(m_pts, 1))))
     out = np.empty(n)
     for s in range(0, n, chunk):
         rep = min(chunk, n - s)
-        ln, an, bn = nm.perturb(
-            np.broadcast_to(l0, (rep, m_pts)), np.broadcast_to(a0, (rep, m_pts)), np.broadcast_to(b0, (rep, m_pts)), g
-        )
-        pts = kinematics.forward(ln, an, bn, p)  # (rep, M, 3)
+        if iso is None:
+            ln, an, bn = nm.perturb(
+                np.broadcast_to(l0, (rep, m_pts)),
+                np.broadcast_to(a0, (rep, m_pts)),
+                np.broadcast_to(b0, (rep, m_pts)),
+                g,
+            )
+            pts = kinematics.forward(ln, an, bn, p)  # (rep, M, 3)
+        else:
+            pts = truth + g.normal(0.0, iso, (rep, m_pts, 3))
         fun, jfun = _replica_problem(frame, pts, fit.line_of_sight, nm, p)
         theta = batched_levenberg_marquardt(fun, jfun, np.zeros((rep, 5)), max_iter=iterations)
         out[s : s + rep] = 2.0 * theta[:, 4] + 2.0 * cyl.radius
