@@ -906,7 +906,8 @@ def fit_cylinder(
         if initial is None and _plausible(fit, pts, start, opt):
             break
     if best is None:
-        raise FitError(errors[-1] if errors else "no cylinder found")
+        last = errors[-1] if errors else "no candidate"
+        raise FitError(last if last.startswith("no cylinder found") else f"no cylinder found: {last}")
     base = None
     if plane is not None:
         pn, po = plane

@@ -54,10 +54,7 @@ def run(args: argparse.Namespace) -> int:
     from service.pointio import read_points
 
     points = read_points(args.file)
-    if args.model == "elbow":
-        result = _run_elbow(args, points)
-    else:
-        result = fit_cylinder_file(args, points)
+    result = _run_elbow(args, points) if args.model == "elbow" else fit_cylinder_file(args, points)
     if args.json:
         json.dump(result, sys.stdout, indent=2)
         sys.stdout.write("\n")
