@@ -1,7 +1,7 @@
 """Seed 000's Tables 3-6, the coverage study (Figures 12-14) and a two-station registration,
 measured on our simulated joints and printed beside the seed's numbers.
 
-Run: ``.venv/bin/python -m bench.seed000_tables`` (default: 2 repetitions per cell, Gaussian
+Run: ``.venv/bin/python -m bench.seed000_tables`` (default: 1 repetition per cell, Gaussian
 noise, the reduced coverage grid; a few minutes). ``--reps N`` for more repetitions,
 ``--noise-kind uniform`` (or ``both``), ``--full-coverage`` for the whole 10-360 deg x 0-8 mm
 grid, ``--only 3,4,5,6,cov,reg`` to pick parts, ``--plot DIR`` for PNGs of the coverage study.
@@ -360,7 +360,7 @@ def sharp_gate(reps: int, kind: str) -> None:
 
 def main(argv: Sequence[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
-    ap.add_argument("--reps", type=int, default=2, help="repetitions per cell (default 2)")
+    ap.add_argument("--reps", type=int, default=1, help="repetitions per cell (default 1)")
     ap.add_argument("--noise-kind", choices=["gauss", "uniform", "both"], default="gauss")
     ap.add_argument("--full-coverage", action="store_true", help="coverage 10..360 deg by 10, noise 0..8 mm by 1")
     ap.add_argument("--only", default="3,4,5,6,cov,7,reg", help="comma list of parts: 3,4,5,6,cov,7,reg,sharp")
