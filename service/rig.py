@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from drivers.lms100.client import ScannerClient
+from drivers.servo import cia402
 from drivers.url import open_device
 from lrms.errors import FitError
 from service import fitting, mcaplog
@@ -290,9 +291,8 @@ class Rig:
         m = self.motor
         if m is not None:
             try:
-                state = m.state
-                name = getattr(state, "name", str(state))
-                sample = m.latest_sample()
+                sample = m.latest_sample()  # the newest sample's statusword: no bus traffic, no wait
+                name = "UNKNOWN" if sample is None else cia402.decode_state(sample.statusword).name
                 fault = m.fault() if "FAULT" in name else None
                 out["motor"].update(
                     state=name,

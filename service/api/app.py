@@ -212,7 +212,7 @@ def create_app(service: Service, manage_lifecycle: bool = True) -> FastAPI:
 
     # -- rig ------------------------------------------------------------------------------
     @api.get("/rig", tags=["rig"])
-    async def rig() -> dict[str, Any]:
+    def rig() -> dict[str, Any]:
         cfg = service.config
         info: dict[str, Any] = {
             "name": cfg.name,
