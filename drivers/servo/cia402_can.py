@@ -197,6 +197,11 @@ class Cia402CanMotor(Cia402Motor):
         self._sync_times: collections.deque[float] = collections.deque(maxlen=outstanding)
         #: host time of every SYNC sent (or seen, with sync_hz=0), newest last: diagnostics
         self.sync_history: collections.deque[float] = collections.deque(maxlen=4096)
+        self._pair_window_start = -math.inf
+        self._pair_min_backlog = 0
+        self.resyncs = 0  # times a lost TPDO was detected and the pairing corrected
+        #: seconds of consistently late pairing that prove a lost TPDO (not merely a slow link)
+        self.pairing_window_s = 5.0
         self._sync_lock = threading.Lock()
         self._last_heartbeat: float | None = None
         self._heartbeat_ms = self.options.heartbeat_ms
@@ -377,11 +382,25 @@ class Cia402CanMotor(Cia402Motor):
         """Host time of the SYNC a TPDO received at ``t_rx`` answers: the oldest unanswered SYNC
         (first-in first-out: CAN keeps frame order and does not drop frames, so this holds
         however late the TPDO is). SYNCs the drive cannot answer are forgotten when its heartbeat
-        says it is not Operational, and the queue keeps at most 0.5 s of SYNCs."""
+        says it is not Operational, and the queue keeps at most 0.5 s of SYNCs. Should an answer
+        be lost anyway, every later TPDO would pair with the SYNC before its own, and a newer
+        SYNC would always still be outstanding when a TPDO arrives; when that has been so for
+        every TPDO during :attr:`pairing_window_s`, the oldest outstanding SYNC is dropped."""
         with self._sync_lock:
-            if self._sync_times:
-                return self._sync_times.popleft()
-        return t_rx
+            if not self._sync_times:
+                return t_rx
+            t_sync = self._sync_times.popleft()
+            self._pair_min_backlog = min(self._pair_min_backlog, len(self._sync_times))
+            if self._pair_window_start == -math.inf:
+                self._pair_window_start = t_rx
+            elif t_rx - self._pair_window_start >= self.pairing_window_s:
+                if self._pair_min_backlog >= 1 and self._sync_times:
+                    self._sync_times.popleft()
+                    self.resyncs += 1
+                    log.info("node %d: TPDO/SYNC pairing re-synchronised (an answer was lost)", self.node_id)
+                self._pair_window_start = t_rx
+                self._pair_min_backlog = len(self._sync_times)
+            return t_sync
 
     def _on_tpdo1(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if len(data) < 6:

@@ -23,6 +23,7 @@ from __future__ import annotations
 import collections
 import itertools
 import logging
+import queue
 import struct
 import threading
 import time
@@ -84,11 +85,14 @@ class SimCanNode:
         self.sync_log: collections.deque[tuple[float, int]] = collections.deque(maxlen=2000)
         #: extra delay before the synchronous TPDOs of a SYNC leave (a slow drive or a busy bus)
         self.tpdo_latency_s = 0.0
+        #: the synchronous TPDOs of this many coming SYNCs are not sent (frames lost)
+        self.drop_tpdos = 0
+        self._delayed: queue.SimpleQueue[tuple[float, list[tuple[int, bytes]]]] = queue.SimpleQueue()
 
     # ------------------------------------------------------------------------------------------
     def start(self) -> SimCanNode:
         self._boot()
-        for target, name in ((self._rx_loop, "rx"), (self._tick_loop, "tick")):
+        for target, name in ((self._rx_loop, "rx"), (self._tick_loop, "tick"), (self._delayed_loop, "late")):
             t = threading.Thread(target=target, name=f"sim-can-node{self.node_id}-{name}", daemon=True)
             t.start()
             self._threads.append(t)
@@ -245,9 +249,23 @@ class SimCanNode:
                 if self._tpdo_sync_counter[k] >= every:
                     self._tpdo_sync_counter[k] = 0
                     frames.append((cob & 0x7FF, self._pack_tpdo(k)))
-        if self.tpdo_latency_s > 0:
-            threading.Timer(self.tpdo_latency_s, self._send_all, args=(frames,)).start()
+        if self.drop_tpdos > 0:  # simulated loss of this SYNC's answer
+            self.drop_tpdos -= 1
+            return
+        if self.tpdo_latency_s > 0:  # held back in order, like frames queued behind others on a bus
+            self._delayed.put((time.monotonic() + self.tpdo_latency_s, frames))
         else:
+            self._send_all(frames)
+
+    def _delayed_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                due, frames = self._delayed.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            wait = due - time.monotonic()
+            if wait > 0 and self._stop.wait(wait):
+                return
             self._send_all(frames)
 
     def _send_all(self, frames: list[tuple[int, bytes]]) -> None:

@@ -371,3 +371,23 @@ def test_late_tpdos_keep_their_own_sync_stamp() -> None:
         ids = [index[s.t_host_s] for s in samples]
         assert ids == list(range(ids[0], ids[0] + len(ids)))
         m.stop()
+
+
+def test_lost_tpdo_answers_are_detected_and_pairing_recovers() -> None:
+    with open_device("motor", "sim://?node=9&sync_hz=100") as m:
+        assert isinstance(m, Cia402CanMotor)
+        node = m.sim_node
+        m.enable()
+        m.jog(math.radians(30.0))
+        wait_for(lambda: abs(math.degrees(m.velocity_rad_s()) - 30.0) < 0.1)
+        m.pairing_window_s = 1.0  # (5 s by default)
+        node.drop_tpdos = 1  # one SYNC goes unanswered while the drive stays Operational
+        wait_for(lambda: m.resyncs >= 1, timeout=5.0)
+        t0 = m.clock() + 0.05
+        wait_for(lambda: len(m.samples_since(t0)) >= 20)
+        index = {t: i for i, t in enumerate(m.sync_history)}
+        latched = [p for _, p in node.sync_log]
+        for s in m.samples_since(t0):
+            assert FAST.rad_to_counts(s.position_rad) == latched[index[s.t_host_s]]
+        assert m.resyncs == 1
+        m.stop()
