@@ -88,6 +88,9 @@ def json_safe(obj: Any) -> Any:
     return obj
 
 
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
 class McapLogError(ServiceError):
     """The raw log could not be written or read."""
 
@@ -426,6 +429,9 @@ def iter_log(path: str | Path, status: LogReadStatus | None = None) -> Iterator[
     except OSError as exc:
         raise McapLogError(f"cannot open raw log {path}: {exc.strerror or exc}") from None
     with fh:
+        if fh.read(8) != MCAP_MAGIC:
+            raise McapLogError(f"{path} is not an MCAP file")
+        fh.seek(0)
         reader = NonSeekingReader(fh)
         it = reader.iter_messages(log_time_order=False)
         while True:

@@ -1,0 +1,99 @@
+"""The command line end to end: ``lrms measure`` on the default simulated rig, ``lrms replay``, ``lrms serve``."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+
+from tests.conftest import REPO
+
+LRMS = [sys.executable, "-m", "service.cli.main"]
+
+
+def test_measure_then_replay(tmp_path: Path) -> None:
+    out = tmp_path / "run.mcap"
+    plot = tmp_path / "run.png"
+    proc = subprocess.run(
+        [
+            *LRMS,
+            "measure",
+            "--target",
+            "cylinder",
+            "--speed",
+            "20",
+            "--out",
+            str(out),
+            "--plot",
+            str(plot),
+            "--data",
+            str(tmp_path / "data"),
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(proc.stdout)
+    u = result["uncertainty"]
+    assert u["d_min_m"] <= 0.1375 <= u["d_max_m"] and abs(result["diameter_m"] - 0.1375) <= 4 * u["std_m"]
+    assert "%" in proc.stderr  # the progress bar
+    assert out.stat().st_size > 100_000 and plot.read_bytes()[:4] == b"\x89PNG"
+    rep = subprocess.run([*LRMS, "replay", str(out)], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert rep.returncode == 0, rep.stderr
+    replayed = json.loads(rep.stdout)
+    assert replayed["reproduced"] is True and replayed["max_abs_diff"] <= 1e-9
+    assert replayed["result"]["diameter_m"] == result["diameter_m"]
+
+
+def test_bad_config_and_bad_replay_file_are_one_line_errors(tmp_path: Path) -> None:
+    bad = tmp_path / "rig.toml"
+    bad.write_text("[sim]\n[sweep]\nspeed_deg_s = -1\n")
+    proc = subprocess.run(
+        [*LRMS, "measure", "--config", str(bad), "--target", "cylinder"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 1 and proc.stderr.startswith("error: ") and "sweep.speed_deg_s" in proc.stderr
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"nope")
+    proc = subprocess.run([*LRMS, "replay", str(junk)], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1 and "not an MCAP file" in proc.stderr
+
+
+def test_serve_answers_on_loopback(tmp_path: Path) -> None:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = {**os.environ, "LRMS_API_TOKEN": "x"}
+    proc = subprocess.Popen(
+        [*LRMS, "serve", "--port", str(port), "--data", str(tmp_path), "--log-level", "warning"],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        end = time.monotonic() + 60
+        body = None
+        while time.monotonic() < end and body is None:
+            try:
+                body = httpx.get(f"http://127.0.0.1:{port}/api/v1/rig").json()
+            except httpx.HTTPError:
+                assert proc.poll() is None, proc.communicate()
+                time.sleep(0.2)
+        assert body is not None and body["simulated"] is True and body["write_enabled"] is True
+        assert body["sim"]["alive"] is True and body["scanner"]["connected"] is True
+    finally:
+        proc.terminate()
+        proc.wait(30)
