@@ -68,7 +68,7 @@ def point_covariances(
     nm = noise if noise is not None else NoiseModel()
     j = kinematics.jacobian(l, alpha, beta, p)
     var = np.array([nm.sigma_l**2, nm.sigma_alpha**2, nm.sigma_beta**2])
-    return np.asarray(np.einsum("...ik,k,...jk->...ij", j, var, j), dtype=np.float64)
+    return np.asarray((j * var) @ np.swapaxes(j, -1, -2), dtype=np.float64)
 
 
 def covariances_of_points(

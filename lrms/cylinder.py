@@ -63,6 +63,11 @@ SILHOUETTE_SIGMA = 1e-3
 _STEPS = np.array([1e-6, 1e-6, 1e-6, 1e-6, 1e-6])
 
 
+def _dot(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Inner products over the last axis (broadcasting); faster than ``np.sum(a * b, -1)``."""
+    return np.asarray(np.einsum("...i,...i->...", a, b), dtype=np.float64)
+
+
 def _unit(v: ArrayLike) -> FloatArray:
     a = np.asarray(v, dtype=np.float64)
     return np.asarray(a / np.linalg.norm(a, axis=-1, keepdims=True), dtype=np.float64)
@@ -146,11 +151,11 @@ def _ray_cylinder(
     a_ = a[..., None, :]
     w_ = w[..., None, :]
     v = o - a_
-    vp = v - np.sum(v * w_, axis=-1, keepdims=True) * w_
-    up = u - np.sum(u * w_, axis=-1, keepdims=True) * w_
-    aa = np.maximum(np.sum(up * up, axis=-1), 1e-300)
-    bb = np.sum(vp * up, axis=-1)
-    cc = np.sum(vp * vp, axis=-1)
+    vp = v - _dot(v, w_)[..., None] * w_
+    up = u - _dot(u, w_)[..., None] * w_
+    aa = np.maximum(_dot(up, up), 1e-300)
+    bb = _dot(vp, up)
+    cc = _dot(vp, vp)
     t_ca = -bb / aa
     d_ca2 = np.maximum(cc - bb * bb / aa, 0.0)
     rr = np.asarray(r, dtype=np.float64)[..., None]
@@ -374,7 +379,7 @@ def los_jacobian(
     dw, da = _param_derivatives(frame, theta)
     x = origins + t[..., None] * dirs
     v = x - a[..., None, :]
-    h = np.sum(v * w[..., None, :], axis=-1)
+    h = _dot(v, w[..., None, :])
     q = v - h[..., None] * w[..., None, :]
     # (..., N, 5) pieces: q.da_j and v.dw_j
     da_t = np.swapaxes(da, -1, -2)  # (..., 3, 5)
@@ -383,23 +388,34 @@ def los_jacobian(
     v_dw = v @ dw_t
     dr = np.zeros(5)
     dr[4] = 1.0
-    hit = gap <= 0
-    qu = np.sum(q * dirs, axis=-1)
+    qu = _dot(q, dirs)
     safe_qu = np.where(np.abs(qu) > 1e-300, qu, 1e-300)
-    dt_hit = (q_da + h[..., None] * v_dw + r[..., None, None] * dr) / safe_qu[..., None]
-    # miss: closest approach H = q.u = 0 -> dt = -(dH/dtheta) / A
-    uw = np.sum(dirs * w[..., None, :], axis=-1)
-    big_a = np.maximum(1.0 - uw * uw, 1e-300)
-    u_da = dirs @ da_t
-    w_da = w[..., None, :] @ da_t
-    u_dw = dirs @ dw_t
-    dh = -u_da + uw[..., None] * w_da - v_dw * uw[..., None] - h[..., None] * u_dw
-    dt_miss = -dh / big_a[..., None]
-    qn = np.maximum(np.linalg.norm(q, axis=-1), 1e-300)
-    dgap = -(q_da + h[..., None] * v_dw) / qn[..., None] - dr
-    dt = np.where(hit[..., None], dt_hit, dt_miss)
-    jr = -dt / np.asarray(sigma_l)[..., None]
-    jg = np.where(hit[..., None], 0.0, dgap / np.asarray(sigma_perp)[..., None])
+    sig_l = np.broadcast_to(np.asarray(sigma_l, dtype=np.float64), t.shape)
+    jr = -(q_da + h[..., None] * v_dw + r[..., None, None] * dr) / (safe_qu * sig_l)[..., None]
+    jg = np.zeros_like(jr)
+    miss = gap > 0
+    if np.any(miss):
+        # miss rows only (few): the closest approach H = q.u = 0 -> dt = -(dH/dtheta) / A
+        lead = t.shape
+        d_m = dirs if dirs.shape[:-1] == lead else np.broadcast_to(dirs, (*lead, 3))
+        w_m = np.broadcast_to(w[..., None, :], (*lead, 3))[miss]
+        da_m = np.broadcast_to(da_t[..., None, :, :], (*lead, 3, 5))[miss]
+        dw_m = np.broadcast_to(dw_t[..., None, :, :], (*lead, 3, 5))[miss]
+        u = d_m[miss]
+        qm, hm = q[miss], h[miss]
+        uw = _dot(u, w_m)
+        big_a = np.maximum(1.0 - uw * uw, 1e-300)
+        u_da = np.einsum("ki,kij->kj", u, da_m)
+        w_da = np.einsum("ki,kij->kj", w_m, da_m)
+        u_dw = np.einsum("ki,kij->kj", u, dw_m)
+        v_dw_m = v_dw[miss]
+        dh = -u_da + uw[:, None] * w_da - v_dw_m * uw[:, None] - hm[:, None] * u_dw
+        dt_miss = -dh / big_a[:, None]
+        qn = np.maximum(np.linalg.norm(qm, axis=-1), 1e-300)
+        dgap = -(q_da[miss] + hm[:, None] * v_dw_m) / qn[:, None] - dr
+        jr[miss] = -dt_miss / sig_l[miss][:, None]
+        sig_p = np.broadcast_to(np.asarray(sigma_perp, dtype=np.float64), lead)
+        jg[miss] = dgap / sig_p[miss][:, None]
     return np.asarray(np.concatenate([jr, jg], axis=-2), dtype=np.float64)
 
 
@@ -407,8 +423,8 @@ def orthogonal_residuals(theta: FloatArray, frame: _Frame, points: FloatArray, s
     """Whitened orthogonal-distance residuals ``(..., N)``."""
     a, w, r = frame.unpack(theta)
     v = points - a[..., None, :]
-    vw = np.sum(v * w[..., None, :], axis=-1)
-    dist = np.sqrt(np.maximum(np.sum(v * v, axis=-1) - vw * vw, 0.0))
+    vw = _dot(v, w[..., None, :])
+    dist = np.sqrt(np.maximum(_dot(v, v) - vw * vw, 0.0))
     return np.asarray((dist - r[..., None]) / sigma, dtype=np.float64)
 
 
@@ -417,7 +433,7 @@ def orthogonal_jacobian(theta: FloatArray, frame: _Frame, points: FloatArray, si
     a, w, _ = frame.unpack(theta)
     dw, da = _param_derivatives(frame, theta)
     v = points - a[..., None, :]
-    h = np.sum(v * w[..., None, :], axis=-1)
+    h = _dot(v, w[..., None, :])
     q = v - h[..., None] * w[..., None, :]
     qn = np.maximum(np.linalg.norm(q, axis=-1), 1e-300)
     q_da = q @ np.swapaxes(da, -1, -2)
@@ -512,11 +528,13 @@ def refine_cylinder(
     gate: float = INLIER_GATE,
     max_nfev: int = 200,
     work_size: int = 20_000,
+    final_full: bool = True,
 ) -> CylinderFit:
     """Least-squares refinement from ``initial`` with inlier re-selection on ``points``.
 
     Rounds before the last work on at most ``work_size`` random inliers; the final solve always
-    uses every inlier.
+    uses every inlier (unless ``final_full`` is false: then the result may come from the subset,
+    as a start for further work).
 
     With ``rays`` (one per point): the line-of-sight fit, covariance from the a priori noise
     model. Without: the orthogonal-distance fit with isotropic ``sigma`` (m); ``sigma=None``
@@ -572,7 +590,7 @@ def refine_cylinder(
     for round_ in range(max_rounds):
         if idx.size < 6:
             raise FitError(f"too few inliers left for a cylinder fit ({idx.size})")
-        partial_solve = idx.size > work_size
+        partial_solve = idx.size > work_size and (round_ < max_rounds - 1 or not final_full)
         sel = np.sort(pick.choice(idx, work_size, replace=False)) if partial_solve else idx
         cyl = solve_on(sel, cyl)
         if not use_los and sigma is None:
@@ -589,7 +607,7 @@ def refine_cylinder(
         if np.array_equal(new_idx, idx):
             break
         idx = new_idx
-    if partial_solve:
+    if partial_solve and final_full:
         cyl = solve_on(idx, cyl)
 
     frame = _Frame.at(cyl)
@@ -753,10 +771,10 @@ def _multistart(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: DetectOption
     (the hit range varies like a square root of the radius there), so the likelihood has
     several local minima a few tenths of sigma_l apart; one LM run from the orthogonal fit's
     (biased) start does not always reach the best. The starts are compared on the same inliers
-    (a random subset of at most ``work`` of them for large clouds), the winner is refined on all.
+    (a random subset of at most 5000 of them for large clouds), the winner is refined on all.
     """
     idx = fit.inliers
-    work = 20_000
+    work = 5_000
     sel = idx if idx.size <= work else np.sort(np.random.default_rng(2).choice(idx, work, replace=False))
     sub_pts, sub_rays = pts[sel], rays.subset(sel)
     sig = float(np.median(rays.sigma_l))
@@ -769,9 +787,7 @@ def _multistart(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: DetectOption
             continue
         if trial.chi2_dof < best_cost:
             best_cyl, best_cost = trial.cylinder, trial.chi2_dof
-    if best_cyl is fit.cylinder:
-        return fit
-    return refine_cylinder(pts, best_cyl, rays=rays, max_rounds=2)
+    return refine_cylinder(pts, best_cyl, rays=rays, max_rounds=1)
 
 
 def _refine_from(
@@ -797,7 +813,9 @@ def _refine_from(
         cand = np.flatnonzero((np.abs(rays.ranges - t) < 2.0 * opt.threshold) & (gap < 2.0 * opt.threshold))
         if cand.size < opt.min_inliers:
             raise FitError(f"no cylinder found: only {cand.size} points on the candidate's lines of sight")
-        fit = refine_cylinder(pts[cand], rough.cylinder, rays=rays.subset(cand), max_rounds=4)
+        fit = refine_cylinder(
+            pts[cand], rough.cylinder, rays=rays.subset(cand), max_rounds=4, final_full=False, work_size=5000
+        )
         fit = _multistart(pts[cand], rays.subset(cand), fit, opt)
     else:
         cand = np.flatnonzero(np.abs(rough.cylinder.surface_distance(pts)) < 2.0 * opt.threshold)

@@ -33,7 +33,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import minimize
 
 from lrms import kinematics
-from lrms.covariance import NoiseModel, covariances_of_points
+from lrms.covariance import NoiseModel
 from lrms.cylinder import (
     SILHOUETTE_SIGMA,
     Cylinder,
@@ -66,7 +66,7 @@ def _projected(cyl: Cylinder, points: FloatArray, covs: FloatArray) -> tuple[Flo
     pm = np.stack([e1, e2])  # (2, 3)
     v = points - cyl.point
     c = v @ pm.T  # (N, 2)
-    s = np.einsum("ai,nij,bj->nab", pm, covs, pm)  # (N, 2, 2)
+    s = pm @ covs @ pm.T  # (N, 2, 2)
     return c, s
 
 
@@ -76,8 +76,13 @@ def min_axis_distance(cyl: Cylinder, points: ArrayLike, covs: ArrayLike, k: floa
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     cv = np.asarray(covs, dtype=np.float64).reshape(-1, 3, 3)
     c, s = _projected(cyl, pts, cv)
+    return _min_distance_2d(c, s[:, 0, 0], s[:, 0, 1], s[:, 1, 1], kk)
+
+
+def _min_distance_2d(c: FloatArray, a: FloatArray, b: FloatArray, d: FloatArray, kk: float) -> FloatArray:
+    """Distance from the origin to the filled ellipses ``(y - c)^T S^-1 (y - c) <= k^2``,
+    ``S = [[a, b], [b, d]]``, for ``N`` ellipses at once (see the module notes)."""
     # eigen-decomposition of the symmetric 2x2 matrices, closed form
-    a, b, d = s[:, 0, 0], s[:, 0, 1], s[:, 1, 1]
     mean = 0.5 * (a + d)
     rad = np.hypot(0.5 * (a - d), b)
     s1 = np.maximum(mean + rad, 1e-300)
@@ -89,18 +94,22 @@ def min_axis_distance(cyl: Cylinder, points: ArrayLike, covs: ArrayLike, k: floa
     q1, q2 = s1 * c1 * c1, s2 * c2 * c2
     inside = (c1 * c1 / s1 + c2 * c2 / s2) <= kk * kk
     target = 1.0 / kk
-    mu = np.zeros_like(a)
+    # start from below: each single-term root sqrt(s_i) |c_i| / k - s_i is a lower bound of mu
+    mu = np.maximum(np.maximum(np.sqrt(s1) * np.abs(c1) / kk - s1, np.sqrt(s2) * np.abs(c2) / kk - s2), 0.0)
+    mu[inside] = 0.0
+    todo = np.flatnonzero(~inside)
     for _ in range(60):
-        x1, x2 = s1 + mu, s2 + mu
-        m = q1 / (x1 * x1) + q2 / (x2 * x2)
-        phi = 1.0 / np.sqrt(m)
-        dm = -2.0 * (q1 / x1**3 + q2 / x2**3)
-        dphi = -0.5 * dm * m**-1.5
-        step = (target - phi) / np.maximum(dphi, 1e-300)
-        step = np.where(inside, 0.0, np.maximum(step, 0.0))
-        mu = mu + step
-        if np.all(step <= 1e-15 * np.maximum(mu, 1e-300)):
+        if todo.size == 0:
             break
+        m_, s1_, s2_, q1_, q2_ = mu[todo], s1[todo], s2[todo], q1[todo], q2[todo]
+        i1, i2 = 1.0 / (s1_ + m_), 1.0 / (s2_ + m_)
+        t1, t2 = q1_ * i1 * i1, q2_ * i2 * i2
+        m = t1 + t2
+        phi = 1.0 / np.sqrt(m)
+        dphi = (t1 * i1 + t2 * i2) * phi / m
+        step = np.maximum((target - phi) / np.maximum(dphi, 1e-300), 0.0)
+        mu[todo] = m_ + step
+        todo = todo[step > 1e-12 * np.maximum(m_ + step, 1e-300)]
     y1 = mu * c1 / (s1 + mu)
     y2 = mu * c2 / (s2 + mu)
     return np.asarray(np.where(inside, 0.0, np.hypot(y1, y2)), dtype=np.float64)
@@ -158,6 +167,23 @@ def centripetal_radius_eq12(cyl: Cylinder, point: ArrayLike, cov: ArrayLike, k: 
     )
     r_min = float(np.sqrt(max(res.fun, 0.0))) * scale
     return cyl.radius - r_min
+
+
+def _rig_centripetal_radii(cyl: Cylinder, pts: FloatArray, nm: NoiseModel, p: float, k: float) -> FloatArray:
+    """:func:`centripetal_radii` with Eq. 7 covariances, projected without forming them:
+    ``S = (P J) diag(var) (P J)^T`` for the 2 x 3 projection ``P`` onto the cross-section."""
+    l, alpha, beta = kinematics.inverse(pts, p)
+    jac = kinematics.jacobian(l, alpha, beta, p)
+    e1, e2 = perpendicular_frame(cyl.direction)
+    pj = np.stack([e1, e2]) @ jac  # (N, 2, 3)
+    var = np.array([nm.sigma_l**2, nm.sigma_alpha**2, nm.sigma_beta**2])
+    p0, p1 = pj[:, 0, :], pj[:, 1, :]
+    s00 = (p0 * p0) @ var
+    s01 = (p0 * p1) @ var
+    s11 = (p1 * p1) @ var
+    v = pts - cyl.point
+    c = np.column_stack([v @ e1, v @ e2])
+    return np.asarray(cyl.radius - _min_distance_2d(c, s00, s01, s11, k), dtype=np.float64)
 
 
 def ideal_points(cyl: Cylinder, rays: Rays) -> FloatArray:
@@ -232,12 +258,11 @@ def critical_point_interval(
         if not np.isfinite(isotropic_sigma) or isotropic_sigma <= 0:
             raise LrmsError(f"isotropic_sigma must be > 0, got {isotropic_sigma}")
         covs = np.broadcast_to(np.eye(3) * isotropic_sigma**2, (pts.shape[0], 3, 3))
+        radii = centripetal_radii(cyl, pts, covs, kk)
     else:
-        covs = covariances_of_points(pts, noise, p)
-    radii = centripetal_radii(cyl, pts, covs, kk)
-    order = np.argsort(radii, kind="stable")
+        radii = _rig_centripetal_radii(cyl, pts, noise if noise is not None else NoiseModel(), p, kk)
     pos = int(np.floor(percentile / 100.0 * (radii.size - 1)))
-    crit = int(order[pos])
+    crit = int(np.argpartition(radii, pos)[pos])
     r_ce = float(radii[crit])
     d = cyl.diameter
     return CriticalPointInterval(
