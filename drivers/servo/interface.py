@@ -93,6 +93,10 @@ class TargetOutOfRange(ServoError, ValueError):
     """A target lies outside the configured software limits or the drive's number range."""
 
 
+class SampleRangeError(ServoError, ValueError):
+    """Interpolation asked for times the sample buffer does not cover."""
+
+
 class MotionTimeout(ServoError, DeviceTimeoutError):
     """A state transition, move or homing did not finish within the timeout."""
 
@@ -320,6 +324,22 @@ class SampleBuffer:
             keep = t > t_host_s
             return SampleArrays(t[keep], self._p[order][keep], self._v[order][keep], self._s[order][keep])
 
+    def positions_at(self, t_host_s: npt.ArrayLike) -> npt.NDArray[np.float64]:
+        """Positions interpolated linearly between samples at the host times ``t_host_s``
+        (vectorised). Times outside the buffered span raise :class:`SampleRangeError`."""
+        t = np.asarray(t_host_s, dtype=np.float64)
+        a = self.arrays_since()
+        if len(a.t_host_s) < 2:
+            raise SampleRangeError(f"need at least 2 samples to interpolate, have {len(a.t_host_s)}")
+        if t.size and not np.all(np.isfinite(t)):
+            raise SampleRangeError("times must be finite: NaN or inf is outside the sampled span")
+        if t.size and (t.min() < a.t_host_s[0] or t.max() > a.t_host_s[-1]):
+            raise SampleRangeError(
+                f"times [{t.min():.6f}, {t.max():.6f}] s outside the sampled span "
+                f"[{a.t_host_s[0]:.6f}, {a.t_host_s[-1]:.6f}] s (no extrapolation)"
+            )
+        return np.interp(t, a.t_host_s, a.position_rad)
+
     def since(self, t_host_s: float = -math.inf) -> list[MotorSample]:
         a = self.arrays_since(t_host_s)
         return [
@@ -454,6 +474,11 @@ class Motor(abc.ABC):
 
     def latest_sample(self) -> MotorSample | None:
         return self._samples.latest()
+
+    def positions_at(self, t_host_s: npt.ArrayLike) -> npt.NDArray[np.float64]:
+        """Output-shaft angles (rad) at host times, interpolated between samples (vectorised);
+        :class:`SampleRangeError` for times outside the buffered samples."""
+        return self._samples.positions_at(t_host_s)
 
     @property
     def sample_count(self) -> int:

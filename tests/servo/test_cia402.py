@@ -4,12 +4,20 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 
 from drivers.errors import DriverError
 from drivers.servo import cia402
 from drivers.servo.cia402 import Command, State
-from drivers.servo.interface import DriveConfig, DriveConfigError, MotorSample, SampleBuffer, TargetOutOfRange
+from drivers.servo.interface import (
+    DriveConfig,
+    DriveConfigError,
+    MotorSample,
+    SampleBuffer,
+    SampleRangeError,
+    TargetOutOfRange,
+)
 
 
 @pytest.mark.parametrize(
@@ -213,3 +221,17 @@ def test_sample_buffer_ring_and_since() -> None:
     later = buf.since(16.0)
     assert [s.t_host_s for s in later] == [17.0, 18.0, 19.0]
     assert buf.latest() == MotorSample(19.0, pytest.approx(1.9), 1.0, 0x0237)
+
+
+def test_sample_buffer_interpolates_positions_without_extrapolating() -> None:
+    buf = SampleBuffer(capacity=16)
+    with pytest.raises(SampleRangeError):
+        buf.positions_at([0.0])
+    for k in range(10):
+        buf.push(MotorSample(1.0 + 0.01 * k, 0.5 * k, 0.0, 0x0237))
+    got = buf.positions_at(np.array([1.0, 1.005, 1.0425, 1.09]))
+    assert got == pytest.approx([0.0, 0.25, 2.125, 4.5])
+    assert buf.positions_at([]).shape == (0,)
+    for bad in ([0.99], [1.0, 1.2], [float("nan")]):
+        with pytest.raises(SampleRangeError, match="outside"):
+            buf.positions_at(bad)
