@@ -17,10 +17,12 @@ Reading of the seed:
   (omega, psi, kappa; deg), delta_AD: RMSE of A and D (mm), each over the repetitions; a random
   pose per repetition. The model's two labellings of the legs describe the same surface; the one
   nearer the truth is compared.
-* Fits start from the automatic initial values (Section 2.2.2) with the ratio A/D free, except
-  where a cell says otherwise: the coverage study (10-360 deg, where a 10 deg sliver holds no pipe
-  end to start from) and cells where the automatic start fails start from the truth perturbed by
-  3 mm, 1 deg and 5 % (marked "*"). A cell is "n/a" only if the adjustment itself fails.
+* Fits start from the automatic initial values (Section 2.2.2) with the ratio A/D free
+  (``--ratio fixed``: A/D fixed at the joint's type), except: Table 6 (noise of 10-40 % of D, for
+  which the automatic start is not built), the coverage study (10-360 deg, where a 10 deg sliver
+  holds no pipe end to start from) and Table 7 start from the truth perturbed by 3 mm, 1 deg and
+  5 %; so does any cell where the automatic start fails (marked "*"). A cell is "n/a" only if the
+  adjustment itself fails.
 """
 
 from __future__ import annotations
@@ -136,8 +138,10 @@ def run_cell(
     seed: int,
     coverage: float = 360.0,
     auto: bool = True,
+    fixed_ratio: bool = False,
 ) -> Cell:
     spec = TABLE1[joint]
+    ratio = spec.ratio if fixed_ratio else None
     rng = np.random.default_rng(seed)
     et, er, ead, st, sr, sad = [], [], [], [], [], []
     fails = 0
@@ -150,12 +154,12 @@ def run_cell(
         fit: ElbowFit | None = None
         if auto:
             try:
-                fit = fit_auto(j.points, flange=spec.flange, rng=np.random.default_rng(0))
+                fit = fit_auto(j.points, ratio=ratio, flange=spec.flange, rng=np.random.default_rng(0))
             except FitError:
                 fit = None
         if fit is None:
             try:
-                fit = fit_elbow(j.points, _perturbed(j.truth), flange=spec.flange)
+                fit = fit_elbow(j.points, _perturbed(j.truth), ratio=ratio, flange=spec.flange)
                 perturbed = True
             except FitError:
                 fails += 1
@@ -217,8 +221,11 @@ def table_tr(
     reps: int,
     kind: str,
     auto: bool = True,
+    fixed_ratio: bool = False,
 ) -> dict[str, list[Cell]]:
-    print(f"\n{title}  (ours / seed; dT mm, dR deg; {reps} reps, {kind} noise)")
+    start = "automatic start" if auto else "start: truth perturbed"
+    rt = "A/D fixed" if fixed_ratio else "A/D free"
+    print(f"\n{title}  (ours / seed; dT mm, dR deg; {reps} reps, {kind} noise, {start}, {rt})")
     head = f"{'joint':<22}" + "".join(f"{'+-' + format(n, 'g') + ' mm':>30}" for n in noises)
     print(head)
     print(f"{'':<22}" + "".join(f"{'dT ours/seed':>15}{'dR ours/seed':>15}" for _ in noises))
@@ -227,7 +234,9 @@ def table_tr(
         cells = []
         line = f"{_row_name(r):<22}"
         for k, n in enumerate(noises):
-            cell = run_cell(SEED_TABLE_LABELS[r], D, n, reps, kind, seed=1000 * k + ord(r), auto=auto)
+            cell = run_cell(
+                SEED_TABLE_LABELS[r], D, n, reps, kind, seed=1000 * k + ord(r), auto=auto, fixed_ratio=fixed_ratio
+            )
             cells.append(cell)
             sv = seed_tab[r][k]
             st = _seed_fmt(None if sv is None else sv[0], "t")
@@ -365,20 +374,42 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--full-coverage", action="store_true", help="coverage 10..360 deg by 10, noise 0..8 mm by 1")
     ap.add_argument("--only", default="3,4,5,6,cov,7,reg", help="comma list of parts: 3,4,5,6,cov,7,reg,sharp")
     ap.add_argument("--plot", default=None, help="directory for the coverage-study PNGs")
+    ap.add_argument(
+        "--ratio",
+        choices=["free", "fixed"],
+        default="free",
+        help="Tables 3-6: estimate A and D (free) or fix A/D at the joint's type (fixed)",
+    )
     args = ap.parse_args(argv)
     parts = set(args.only.split(","))
+    fixed = args.ratio == "fixed"
     kinds = ["gauss", "uniform"] if args.noise_kind == "both" else [args.noise_kind]
     t0 = time.perf_counter()
     for kind in kinds:
         if "3" in parts:
-            table_tr("Table 3: D = 0.1 m", SEED_T3, SEED_ROWS, [0, 1, 2, 3], 0.1, args.reps, kind)
+            table_tr("Table 3: D = 0.1 m", SEED_T3, SEED_ROWS, [0, 1, 2, 3], 0.1, args.reps, kind, fixed_ratio=fixed)
         if "4" in parts or "5" in parts:
-            t4 = table_tr("Table 4: D = 0.2 m", SEED_T4, SEED_ROWS, [3, 4, 5, 6], 0.2, args.reps, kind)
+            t4 = table_tr(
+                "Table 4: D = 0.2 m", SEED_T4, SEED_ROWS, [3, 4, 5, 6], 0.2, args.reps, kind, fixed_ratio=fixed
+            )
             if "5" in parts:
-                cells0 = {r: run_cell(SEED_TABLE_LABELS[r], 0.2, 0.0, 1, kind, seed=5) for r in SEED_ROWS}
+                cells0 = {
+                    r: run_cell(SEED_TABLE_LABELS[r], 0.2, 0.0, 1, kind, seed=5, fixed_ratio=fixed) for r in SEED_ROWS
+                }
                 table5(cells0, t4, args.reps, kind)
         if "6" in parts:
-            table_tr("Table 6: D = 0.2 m", SEED_T6, ["b", "f"], [20, 40, 60, 80], 0.2, args.reps, kind)
+            # the automatic start is not built for noise of 10-40 % of D: Table 6 starts from the truth perturbed
+            table_tr(
+                "Table 6: D = 0.2 m",
+                SEED_T6,
+                ["b", "f"],
+                [20, 40, 60, 80],
+                0.2,
+                args.reps,
+                kind,
+                auto=False,
+                fixed_ratio=fixed,
+            )
         if "cov" in parts:
             coverage_study(args.full_coverage, max(1, args.reps // 2), kind, args.plot)
         if "7" in parts:
