@@ -283,6 +283,8 @@ def coverage_study(full: bool, reps: int, kind: str, plot: str | None) -> None:
         for q, (fig_no, what) in enumerate(((12, "dT (mm)"), (13, "dR (deg)"), (14, "dAD (mm)"))):
             fig, ax = plt.subplots(figsize=(7, 4))
             for i, n in enumerate(noises):
+                if n == 0:  # exact to round-off: nothing to draw on a log scale
+                    continue
                 ax.plot(covs, res[q, i], marker="o", ms=3, label=f"+-{n} mm")
             ax.set_xlabel("coverage (deg)")
             ax.set_ylabel(f"RMSE {what}")
