@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 from lrms import kinematics
 from lrms.covariance import NoiseModel
 from lrms.cylinder import Cylinder, Rays, rays_from_points
+from lrms.errors import LrmsError
 
 FloatArray = NDArray[np.float64]
 
@@ -90,8 +91,9 @@ def lrms_sweep(
     clutter objects, scene "seed003"; else scene "seed003-bare"); the motor turns from -35 to 75 deg
     in ``motor_step_deg``. With ``crop`` the cloud is cut to a box around the table (as an
     operator's region of interest would), then ``clutter`` times as many uniform random points
-    are added in that box where the part does not hide them (not inside or behind it). Returns the rig-frame cloud (shuffled), the true cylinder, and the
-    nominal beams that returned an echo from the cylinder (for the Cramer-Rao bound).
+    are added in that box where the part does not hide them (not inside or behind it). Returns
+    the rig-frame cloud (shuffled), the true cylinder, and the nominal beams that returned an
+    echo from the cylinder (for the Cramer-Rao bound).
     """
     from lrms.kinematics import RigCalibration
     from sim.scene import (
@@ -121,7 +123,7 @@ def lrms_sweep(
     if crop:
         pts = pts[np.all((pts >= lo) & (pts <= hi), axis=1)]
     part = Cylinder(c0, np.asarray(SEED003_AXIS_DIRECTION, dtype=float), SEED003_DIAMETER / 2)
-    n_clutter = int(round(clutter * pts.shape[0]))
+    n_clutter = round(clutter * pts.shape[0])
     if n_clutter:
         junk = np.empty((0, 3))
         while junk.shape[0] < n_clutter:  # physical clutter: not inside or behind the part
@@ -145,77 +147,160 @@ class Coverage:
 
     def line(self) -> str:
         share = self.inside / self.total
-        se = np.sqrt(share * (1 - share) / self.total)
-        return f"  {self.name:<46s} claims {self.claimed:<10s} measured {100 * share:6.2f} % +- {100 * se:.2f} %"
+        se = np.sqrt(max(share * (1 - share), 1e-12) / self.total)
+        return f"  {self.name:<52s} claims {self.claimed:<12s} measured {100 * share:6.2f} % +- {100 * se:.2f} %"
 
 
-def main(argv: list[str] | None = None) -> int:
+def section_intervals() -> None:
+    from lrms.uncertainty import critical_point_interval
+
+    noise = NoiseModel()
+    print(f"== critical-point interval (Eq. 8-12, 25th percentile), seed's result: +-{SEED_HALF_WIDTH_MM:.2f} mm")
+    for radius, label in ((RADIUS, "r = 0.138 m (seed Sect. 4.2)"), (0.1375 / 2, "d = 137.5 mm (CMM value)")):
+        cyl = seed_cylinder(radius)
+        sets = (
+            ("567 surface points", visible_surface_points(radius=radius)),
+            ("full sweep 0.25x0.6 deg", sweep_points(radius=radius, step_beta_deg=0.6)),
+        )
+        for name, truth in sets:
+            for k in (1.0, 2.0, 3.0):
+                ci = critical_point_interval(cyl, truth, noise=noise, k=k, p=P)
+                print(
+                    f"  {label:<29s} {name:<24s} n={truth.shape[0]:5d} k={k:.0f}: r_ce = {1e3 * ci.r_ce:6.2f} mm,"
+                    f" d +- {1e3 * ci.half_width:6.2f} mm"
+                )
+
+
+def section_bias(n_scans: int, rng: np.random.Generator) -> None:
+    from lrms.cylinder import fit_cylinder
+
+    noise = NoiseModel()
+    print(f"\n== fit bias on the seed's set-up, {n_scans} noisy full sweeps each (analytic ray cast, no clutter)")
+    for radius in (0.1375 / 2, RADIUS):
+        truth = sweep_points(radius=radius, step_beta_deg=0.6)
+        cyl = seed_cylinder(radius)
+        d_los, d_orth = np.empty(n_scans), np.empty(n_scans)
+        for s in range(n_scans):
+            pts, rays = noisy_scan(truth, noise, rng)
+            d_los[s] = fit_cylinder(pts, rays=rays, noise=noise, initial=cyl).diameter
+            d_orth[s] = fit_cylinder(pts, line_of_sight=False, noise=noise, initial=cyl).diameter
+        for name, d in (("line of sight", d_los), ("orthogonal", d_orth)):
+            err = 1e3 * (d - cyl.diameter)
+            print(
+                f"  d = {2e3 * radius:6.1f} mm, {truth.shape[0]:5d} points, {name:<14s}:"
+                f" mean error {err.mean():+7.3f} mm"
+                f" +- {err.std(ddof=1) / np.sqrt(n_scans):.3f} (s.e.), std {err.std(ddof=1):.3f} mm"
+            )
+
+
+def section_coverage(n_scans: int, n_mc: int, k: float, points: str, rng: np.random.Generator) -> None:
+    from lrms.crb import cylinder_crb
     from lrms.cylinder import fit_cylinder
     from lrms.uncertainty import critical_point_interval, gum_interval, monte_carlo_interval
 
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scans", type=int, default=1000)
-    ap.add_argument("--mc", type=int, default=200, help="Monte Carlo replicas per scan")
-    ap.add_argument("--k", type=float, default=1.0)
-    ap.add_argument("--seed", type=int, default=3)
-    ap.add_argument("--points", choices=["567", "sweep"], default="567")
-    args = ap.parse_args(argv)
     noise = NoiseModel()
-    rng = np.random.default_rng(args.seed)
     cyl = seed_cylinder()
     d_true = cyl.diameter
-
-    print("Seed 003 reproduction (r = 0.138 m, rig at the origin, p = 0.1 m, sigma_l^2 = 136.11 mm^2)")
-    print(f"seed's interval: +-{SEED_HALF_WIDTH_MM:.2f} mm")
-    for label, truth in (("567 surface points", visible_surface_points()), ("full sweep", sweep_points())):
-        rays = rays_from_points(truth, P, noise)
-        for k in (1.0, 2.0, 3.0):
-            ci = critical_point_interval(cyl, truth, noise=noise, k=k, p=P)
-            print(
-                f"  {label:<20s} n={truth.shape[0]:5d} k={k:.0f}: critical r_ce = {1e3 * ci.r_ce:6.2f} mm,"
-                f" d in [{1e3 * ci.d_min:.2f}, {1e3 * ci.d_max:.2f}] mm = d +- {1e3 * ci.half_width:.2f} mm"
-            )
-        del rays
-
-    truth = visible_surface_points() if args.points == "567" else sweep_points()
-    print(f"\ncoverage over {args.scans} simulated scans of {truth.shape[0]} points ({args.points}), k = {args.k}")
+    truth = visible_surface_points() if points == "567" else sweep_points(step_beta_deg=0.6)
+    print(f"\n== coverage over {n_scans} simulated scans of {truth.shape[0]} points ({points}), r = 0.138 m, k = {k:g}")
     t0 = time.perf_counter()
-    ci_truth = critical_point_interval(cyl, truth, noise=noise, k=args.k, p=P)
-    d_los = np.empty(args.scans)
-    d_orth = np.empty(args.scans)
+    ci_truth = critical_point_interval(cyl, truth, noise=noise, k=k, p=P)
+    d_los, d_orth, u_gum, w_mc = (np.empty(n_scans) for _ in range(4))
     in_a_seed = in_a_own = in_b = in_c = in_a_orth = 0
-    for s in range(args.scans):
+    for s in range(n_scans):
         pts, rays = noisy_scan(truth, noise, rng)
-        fit = fit_cylinder(pts, rays=rays, noise=noise, initial=cyl, rng=rng)
-        orth = fit_cylinder(pts, line_of_sight=False, noise=noise, initial=cyl, rng=rng)
+        fit = fit_cylinder(pts, rays=rays, noise=noise, initial=cyl)
+        orth = fit_cylinder(pts, line_of_sight=False, noise=noise, initial=cyl)
         d_los[s], d_orth[s] = fit.diameter, orth.diameter
         in_a_seed += ci_truth.d_min <= fit.diameter <= ci_truth.d_max
         in_a_orth += ci_truth.d_min <= orth.diameter <= ci_truth.d_max
-        own = critical_point_interval(fit.cylinder, None, noise=noise, k=args.k, p=P, rays=rays.subset(fit.inliers))
+        own = critical_point_interval(fit.cylinder, rays=rays.subset(fit.inliers), noise=noise, k=k, p=P)
         in_a_own += own.d_min <= d_true <= own.d_max
         g = gum_interval(fit)
+        u_gum[s] = g.std
         in_b += g.low <= d_true <= g.high
-        if args.mc > 0:
-            mc = monte_carlo_interval(fit, rays.subset(fit.inliers), noise=noise, n=args.mc, rng=rng, p=P)
+        if n_mc > 0:
+            mc = monte_carlo_interval(fit, rays.subset(fit.inliers), noise=noise, n=n_mc, rng=rng, p=P)
+            w_mc[s] = mc.high - mc.low
             in_c += mc.low <= d_true <= mc.high
     dt = time.perf_counter() - t0
-    n = args.scans
-    print(
-        f"  line-of-sight fit: mean error {1e3 * (d_los.mean() - d_true):+.3f} mm, std {1e3 * d_los.std(ddof=1):.3f} mm"
-    )
-    print(
-        f"  orthogonal fit:    mean error {1e3 * (d_orth.mean() - d_true):+.3f} mm, std {1e3 * d_orth.std(ddof=1):.3f} mm"
-    )
-    for c in (
-        Coverage("(a) critical point, from truth, LOS fit inside", "'almost all'", in_a_seed, n),
-        Coverage("(a) critical point, from truth, orth. fit inside", "'almost all'", in_a_orth, n),
-        Coverage("(a) critical point, from own fit, covers truth", "'almost all'", in_a_own, n),
-        Coverage("(b) GUM d +- 2u, covers truth", "95 %", in_b, n),
-    ):
+    n = n_scans
+    rays_true = rays_from_points(truth, P, noise)
+    crb = cylinder_crb(cyl, rays_true.origins, rays_true.dirs, noise.sigma_l).std_diameter
+    print(f"  critical-point interval from the true geometry: d +- {1e3 * ci_truth.half_width:.2f} mm")
+    for name, d in (("line-of-sight fit", d_los), ("orthogonal fit", d_orth)):
+        print(f"  {name:<18s}: mean error {1e3 * (d.mean() - d_true):+.3f} mm, std {1e3 * d.std(ddof=1):.3f} mm")
+    print(f"  Cramer-Rao bound on std(d): {1e3 * crb:.3f} mm; mean GUM u(d): {1e3 * u_gum.mean():.3f} mm")
+    rows = [
+        Coverage("(a) critical point from truth: LOS fits inside", "'almost all'", in_a_seed, n),
+        Coverage("(a) critical point from truth: orthogonal fits inside", "'almost all'", in_a_orth, n),
+        Coverage("(a) critical point from each fit: covers truth", "'almost all'", in_a_own, n),
+        Coverage("(b) GUM d +- 2u: covers truth", "95.45 %", in_b, n),
+    ]
+    if n_mc > 0:
+        rows.append(Coverage(f"(c) Monte Carlo, {n_mc} replicas: covers truth", "95 %", in_c, n))
+    for c in rows:
         print(c.line())
-    if args.mc > 0:
-        print(Coverage(f"(c) Monte Carlo {args.mc} replicas, covers truth", "95 %", in_c, n).line())
-    print(f"  ({dt:.1f} s)")
+    if n_mc > 0:
+        print(f"  mean Monte Carlo 95 % width {1e3 * w_mc.mean():.3f} mm vs GUM 4u {4e3 * u_gum.mean():.3f} mm")
+    print(f"  ({dt:.0f} s)")
+
+
+def section_accuracy(n_sweeps: int, rng: np.random.Generator) -> None:
+    from lrms.crb import cylinder_crb
+    from lrms.cylinder import fit_cylinder
+
+    noise = NoiseModel()
+    print(
+        f"\n== accuracy: {n_sweeps} ray-cast LRMS sweeps (sim.scene seed003-bare: 137.5 mm part, table, 10 % clutter)"
+    )
+    t0 = time.perf_counter()
+    err, crb, n_in, n_pts, fails = [], [], [], [], 0
+    for _ in range(n_sweeps):
+        pts, part, part_rays = lrms_sweep(rng, clutter=0.1)
+        try:
+            fit = fit_cylinder(pts, noise=noise, rng=rng)
+        except LrmsError as exc:  # counted and reported
+            fails += 1
+            print(f"  fit failed: {exc}")
+            continue
+        err.append(fit.diameter - part.diameter)
+        crb.append(cylinder_crb(part, part_rays.origins, part_rays.dirs, noise.sigma_l).std_diameter)
+        n_in.append(fit.n_inliers)
+        n_pts.append(pts.shape[0])
+    e = 1e3 * np.asarray(err)
+    c = 1e3 * float(np.mean(crb))
+    spread = float(e.std(ddof=1))
+    print(f"  points per sweep {np.mean(n_pts):.0f}, inliers {np.mean(n_in):.0f}, failures {fails}")
+    print(f"  mean diameter error {e.mean():+.4f} mm (s.e. {spread / np.sqrt(e.size):.4f}); goal |mean| <= 0.1 mm")
+    print(f"  spread (std) {spread:.4f} mm; Cramer-Rao bound {c:.4f} mm; ratio {spread / c:.3f} (goal <= 1.25)")
+    print(f"  ({time.perf_counter() - t0:.0f} s)")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scans", type=int, default=1000, help="simulated scans for the coverage check")
+    ap.add_argument("--mc", type=int, default=200, help="Monte Carlo replicas per scan (0: skip interval c)")
+    ap.add_argument("--bias-scans", type=int, default=100)
+    ap.add_argument("--sweeps", type=int, default=200, help="ray-cast sweeps for the accuracy goal")
+    ap.add_argument("--k", type=float, default=1.0)
+    ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--points", choices=["567", "sweep"], default="567")
+    ap.add_argument(
+        "--only", choices=["intervals", "bias", "coverage", "accuracy"], nargs="*", default=None, help="sections to run"
+    )
+    args = ap.parse_args(argv)
+    rng = np.random.default_rng(args.seed)
+    only = set(args.only or ["intervals", "bias", "coverage", "accuracy"])
+    print("Seed 003 reproduction (rig at the origin, p = 0.1 m, sigma_l^2 = 136.11 mm^2)")
+    if "intervals" in only:
+        section_intervals()
+    if "bias" in only:
+        section_bias(args.bias_scans, rng)
+    if "coverage" in only:
+        section_coverage(args.scans, args.mc, args.k, args.points, rng)
+    if "accuracy" in only:
+        section_accuracy(args.sweeps, rng)
     return 0
 
 
