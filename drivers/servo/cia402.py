@@ -77,6 +77,10 @@ SUPPORTED_DRIVE_MODES = 0x6502
 DEVICE_TYPE_SERVO = 0x00020192  # profile 402 (0x192), servo drive (type bits 0x0002)
 
 
+class CodecError(DriverError, ValueError):
+    """A value or frame that does not fit its CANopen encoding."""
+
+
 class DataType(enum.Enum):
     """CANopen basic data types: (CiA 301 type code, struct format, size in bytes)."""
 
@@ -116,7 +120,7 @@ class DataType(enum.Enum):
     @property
     def range(self) -> tuple[int, int]:
         if not self.is_integer:
-            raise TypeError(f"{self.name} has no integer range")
+            raise CodecError(f"{self.name} has no integer range")
         if self is DataType.BOOLEAN:
             return 0, 1
         if self.signed:
@@ -130,16 +134,22 @@ class DataType(enum.Enum):
                 return value.encode("ascii")
             if isinstance(value, bytes):
                 return value
-            raise TypeError(f"VISIBLE_STRING needs str or bytes, got {type(value).__name__}")
+            raise CodecError(f"VISIBLE_STRING needs str or bytes, got {type(value).__name__}")
         if not isinstance(value, int):
-            raise TypeError(f"{self.name} needs an int, got {type(value).__name__}")
-        return struct.pack(self.fmt, value)
+            raise CodecError(f"{self.name} needs an int, got {type(value).__name__}")
+        try:
+            return struct.pack(self.fmt, value)
+        except struct.error:
+            raise CodecError(f"{value} does not fit a {self.name}") from None
 
     def decode(self, data: bytes) -> int:
         """Decode a little-endian integer of this type (``data`` must have the exact size)."""
         if not self.is_integer:
-            raise TypeError(f"{self.name} is not an integer type")
-        value: int = struct.unpack(self.fmt, data)[0]
+            raise CodecError(f"{self.name} is not an integer type")
+        try:
+            value: int = struct.unpack(self.fmt, data)[0]
+        except struct.error:
+            raise CodecError(f"{self.name} needs {self.size} bytes, got {len(data)}") from None
         return value
 
 
@@ -669,13 +679,13 @@ class Emcy:
     @classmethod
     def decode(cls, data: bytes) -> Emcy:
         if len(data) != 8:
-            raise ValueError(f"EMCY frame must carry 8 bytes, got {len(data)}")
+            raise CodecError(f"EMCY frame must carry 8 bytes, got {len(data)}")
         code, register = struct.unpack_from("<HB", data)
         return cls(code=code, register=register, vendor=bytes(data[3:8]))
 
     def encode(self) -> bytes:
         if len(self.vendor) != 5:
-            raise ValueError("EMCY vendor field is 5 bytes")
+            raise CodecError("EMCY vendor field is 5 bytes")
         return struct.pack("<HB", self.code, self.register) + self.vendor
 
     @property

@@ -69,6 +69,7 @@ from drivers.servo.interface import (
     MotorSample,
     SdoAbort,
     ServoError,
+    ServoValueError,
 )
 from drivers.url import DeviceURL
 
@@ -333,7 +334,7 @@ class Cia402CanMotor(Cia402Motor):
         spec = cia402.object_spec(index, subindex)
         lo, hi = spec.dtype.range
         if not lo <= value <= hi:
-            raise ValueError(f"0x{index:04X}:{subindex:02X} {spec.name}: {value} outside [{lo}, {hi}]")
+            raise ServoValueError(f"0x{index:04X}:{subindex:02X} {spec.name}: {value} outside [{lo}, {hi}]")
         self.sdo_download(index, subindex, spec.dtype.encode(value))
 
     # ------------------------------------------------------------------------------------------

@@ -89,7 +89,11 @@ class MotorStateError(ServoError):
     """The command is not possible in the drive's present state (e.g. a move while disabled)."""
 
 
-class TargetOutOfRange(ServoError, ValueError):
+class ServoValueError(ServoError, ValueError):
+    """A bad argument (a non-finite velocity, an out-of-range object value, ...)."""
+
+
+class TargetOutOfRange(ServoValueError):
     """A target lies outside the configured software limits or the drive's number range."""
 
 
@@ -287,7 +291,7 @@ class SampleBuffer:
 
     def __init__(self, capacity: int = 65536) -> None:
         if capacity < 2:
-            raise ValueError("capacity must be >= 2")
+            raise ServoValueError("capacity must be >= 2")
         self._cap = capacity
         self._t = np.zeros(capacity)
         self._p = np.zeros(capacity)
@@ -601,7 +605,7 @@ class Cia402Motor(Motor):
     def _rate(self, value: float | None, default: float, limit: float, name: str) -> int:
         v = default if value is None else value
         if not math.isfinite(v) or v <= 0:
-            raise ValueError(f"{name} must be finite and > 0, got {v}")
+            raise ServoValueError(f"{name} must be finite and > 0, got {v}")
         if v > limit:
             raise TargetOutOfRange(f"{name} {v:.4g} exceeds the configured maximum {limit:.4g}")
         return max(1, self.config.rate_to_counts(v))
@@ -705,7 +709,7 @@ class Cia402Motor(Motor):
     def jog(self, velocity: float, acceleration: float | None = None) -> None:
         c = self.config
         if not math.isfinite(velocity):
-            raise ValueError(f"velocity must be finite, got {velocity}")
+            raise ServoValueError(f"velocity must be finite, got {velocity}")
         if abs(velocity) > c.max_velocity_rad_s:
             raise TargetOutOfRange(f"jog velocity {velocity:.4g} rad/s exceeds {c.max_velocity_rad_s:.4g} rad/s")
         a = self._rate(acceleration, c.acceleration_rad_s2, c.max_acceleration_rad_s2, "acceleration")
@@ -749,7 +753,7 @@ class Cia402Motor(Motor):
     def home(self, method: int | None = None, timeout: float = 30.0) -> None:
         m = self.config.homing_method if method is None else method
         if not -128 <= m <= 127:
-            raise ValueError(f"homing method must fit an i8, got {m}")
+            raise ServoValueError(f"homing method must fit an i8, got {m}")
         with self._cmd_lock:
             self._require_enabled("home")
             self._set_mode(Mode.HOMING)
