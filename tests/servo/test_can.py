@@ -391,3 +391,15 @@ def test_lost_tpdo_answers_are_detected_and_pairing_recovers() -> None:
             assert FAST.rad_to_counts(s.position_rad) == latched[index[s.t_host_s]]
         assert m.resyncs == 1
         m.stop()
+
+
+def test_sdo_string_round_trips_of_every_length(motor: Cia402CanMotor) -> None:
+    rng = np.random.default_rng(7)
+    for n in [*range(0, 23), 48, 127, 255]:
+        text = bytes(rng.integers(32, 127, n, dtype=np.uint8))
+        for force_segment in (False, True):
+            motor.sdo_download(cia402.USER_NOTE, 0, text, force_segment=force_segment)
+            assert motor.sdo_upload(cia402.USER_NOTE) == text, (n, force_segment)
+    with pytest.raises(SdoAbort) as info:
+        motor.sdo_download(cia402.USER_NOTE, 0, b"x" * 256)
+    assert info.value.code == cia402.ABORT_LENGTH_TOO_HIGH
