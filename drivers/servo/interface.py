@@ -641,6 +641,9 @@ class Cia402Motor(Motor):
                 state = cia402.decode_state(sw)
                 if state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
                     self._raise_if_faulted(sw)
+                if state is State.NOT_READY_TO_SWITCH_ON:  # still initialising: it leaves by itself
+                    sw = self._wait_state(State.SWITCH_ON_DISABLED, max(0.0, deadline - self.clock()), "enable")
+                    continue
                 cw = cia402.next_enable_command(state)
                 if cw is None:
                     return
@@ -656,8 +659,13 @@ class Cia402Motor(Motor):
     def disable(self, timeout: float = 2.0) -> None:
         with self._cmd_lock:
             sw = self._fresh_statusword()
-            if cia402.decode_state(sw) in (State.FAULT, State.FAULT_REACTION_ACTIVE, State.SWITCH_ON_DISABLED):
+            state = cia402.decode_state(sw)
+            if state in (State.FAULT, State.FAULT_REACTION_ACTIVE, State.SWITCH_ON_DISABLED, State.READY_TO_SWITCH_ON):
                 return  # the power stage is already off
+            if state is State.QUICK_STOP_ACTIVE:  # only "disable voltage" leaves it (transition 12)
+                self._cw(cia402.CMD_DISABLE_VOLTAGE)
+                self._wait_state(State.SWITCH_ON_DISABLED, timeout, "disable")
+                return
             self._cw(cia402.CMD_SHUTDOWN)
             self._wait_state(State.READY_TO_SWITCH_ON, timeout, "disable")
 

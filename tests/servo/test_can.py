@@ -403,3 +403,17 @@ def test_sdo_string_round_trips_of_every_length(motor: Cia402CanMotor) -> None:
     with pytest.raises(SdoAbort) as info:
         motor.sdo_download(cia402.USER_NOTE, 0, b"x" * 256)
     assert info.value.code == cia402.ABORT_LENGTH_TOO_HIGH
+
+
+def test_quick_stop_that_holds_then_disable(motor: Cia402CanMotor) -> None:
+    # quick-stop option 6: stay in Quick stop active after the ramp; disable leaves it
+    motor.sdo_download(cia402.QUICK_STOP_OPTION, 0, (6).to_bytes(2, "little", signed=True))
+    motor.enable()
+    motor.jog(math.radians(15.0))
+    wait_for(lambda: motor.velocity_rad_s() > math.radians(14.0))
+    motor.quick_stop()
+    wait_for(lambda: motor.state is State.QUICK_STOP_ACTIVE and abs(motor.velocity_rad_s()) < 1e-3)
+    motor.disable()
+    assert motor.state is State.SWITCH_ON_DISABLED
+    motor.enable()  # and back from there
+    assert motor.state is State.OPERATION_ENABLED
