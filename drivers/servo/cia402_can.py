@@ -16,6 +16,9 @@ other interface the host part (or the path) is the channel. Options:
                               with ``setup=0`` the drive's own 0x1017 is used)
 ``heartbeat_lost`` 5          the drive is lost after this many heartbeat periods of silence
                               (0.5 s by default: simulated drives share busy CPUs)
+``master_id``      127        node id of this driver's own heartbeat (every ``heartbeat_ms``),
+                              which the drive consumes (0x1016:1, same tolerance): if this
+                              process dies the drive faults (0x8130) and stops; 0 = off
 ``sdo_timeout``    0.5        seconds to wait for each SDO response
 ``bitrate``        (none)     passed to python-can for interfaces that need it
 ``counts_per_rev`` (config)   encoder counts per motor revolution, overrides the DriveConfig
@@ -30,8 +33,10 @@ host time of the SYNC it answers (paired first-in first-out, so a TPDO that arri
 next SYNC still gets its own SYNC's time; CAN keeps order and does not drop frames); a sample
 is emitted when the matching TPDO2 arrives, and only then do waits on the statusword see it
 (so a wait that returned has its sample stored).
-The controlword is written by SDO (each command confirmed by the drive). ``close()`` stops the
-SYNC and the watchdog and releases the bus; it leaves the drive's state alone.
+The controlword is written by SDO (each command confirmed by the drive). The driver also
+produces its own heartbeat (``master_id``) and has the drive consume it, so that a host that
+dies mid-move leaves a drive that faults (0x8130) and stops. ``close()`` switches that consumer
+off, stops the SYNC and the watchdog and releases the bus; it leaves the drive's state alone.
 
 ``setup=0&sync_hz=0`` is the passive way in, for a second process (``lrms motor status``) while
 another master runs the drive: no NMT command, no re-mapping, no SYNC of its own; samples come
@@ -91,6 +96,7 @@ class CanUrlOptions:
     setup: bool = True
     heartbeat_ms: int = 100
     heartbeat_lost: float = 5.0
+    master_id: int = 127
     sdo_timeout: float = 0.5
     counts_per_rev: int | None = None
     gear_ratio: float | None = None
@@ -112,6 +118,7 @@ def read_url_options(url: DeviceURL) -> CanUrlOptions:
         setup=url.get_bool("setup", True),
         heartbeat_ms=url.get_int("heartbeat_ms", 100, lo=0, hi=65535),
         heartbeat_lost=url.get_float("heartbeat_lost", 5.0, lo=1.5, hi=100.0),
+        master_id=url.get_int("master_id", 127, lo=0, hi=127),
         sdo_timeout=url.get_float("sdo_timeout", 0.5, lo=0.01, hi=30.0),
         counts_per_rev=url.get_int("counts_per_rev", lo=1) if url.has("counts_per_rev") else None,
         gear_ratio=url.get_float("gear_ratio") if url.has("gear_ratio") else None,
@@ -207,6 +214,7 @@ class Cia402CanMotor(Cia402Motor):
         self._last_heartbeat: float | None = None
         self._heartbeat_ms = self.options.heartbeat_ms
         self._last_tpdo_rx: float | None = None
+        self._master_heartbeat_on = False
         self._heartbeat_state: int | None = None
         self.emcy_history: collections.deque[tuple[float, cia402.Emcy]] = collections.deque(maxlen=32)
         self._emcy_callbacks: list[Callable[[float, cia402.Emcy], None]] = []
@@ -264,6 +272,7 @@ class Cia402CanMotor(Cia402Motor):
             self._map_tpdo(1, [(cia402.VELOCITY_ACTUAL, 0, 32), (cia402.FOLLOWING_ERROR_ACTUAL, 0, 32)])
             self._write_object(cia402.SYNC_COUNTER_OVERFLOW, 0, 0)
             self._configure_drive()
+            self._setup_master_heartbeat()
             self._nmt(0x01)  # Operational
         else:
             self._heartbeat_ms = self._read_object(cia402.PRODUCER_HEARTBEAT_TIME)
@@ -275,6 +284,28 @@ class Cia402CanMotor(Cia402Motor):
         if self.options.sync_hz:  # first TPDO: the node is up and answering our SYNC
             with self._sw_cond:
                 self._sw_cond.wait_for(lambda: self._last_sw is not None, timeout=1.0)
+
+    def _setup_master_heartbeat(self) -> None:
+        """Let the drive watch this driver's heartbeat (0x1016:1), so a dead host stops the motor."""
+        o = self.options
+        if not o.master_id or not o.heartbeat_ms:
+            return
+        if o.master_id == self.node_id:
+            raise DeviceURLError(f"master_id {o.master_id} is the drive's own node id")
+        consumer_ms = min(0xFFFF, round(o.heartbeat_lost * o.heartbeat_ms))
+        self._send_master_heartbeat()  # before the drive starts watching
+        try:
+            self._write_object(cia402.CONSUMER_HEARTBEAT_TIME, 1, (o.master_id << 16) | consumer_ms)
+        except SdoAbort as exc:  # a drive without a heartbeat consumer: carry on without
+            log.warning("node %d: no heartbeat consumer (%s); a dead host will not stop it", self.node_id, exc)
+            return
+        self._master_heartbeat_on = True
+
+    def _send_master_heartbeat(self) -> None:
+        try:
+            self.network.send_message(0x700 + self.options.master_id, bytes([0x05]))
+        except (can.CanError, OSError, RuntimeError) as exc:
+            log.debug("node %d: master heartbeat not sent: %s", self.node_id, exc)
 
     def _nmt(self, command: int) -> None:
         self.network.send_message(0x000, bytes([command, self.node_id]))
@@ -349,12 +380,19 @@ class Cia402CanMotor(Cia402Motor):
 
     def _sync_loop(self) -> None:
         if not self.options.sync_hz:  # SYNC comes from elsewhere: only watch
+            hb_period = self.options.heartbeat_ms / 1000.0
+            next_hb = time.monotonic()
             while not self._stop.wait(0.01):
+                if self._master_heartbeat_on and time.monotonic() >= next_hb:
+                    self._send_master_heartbeat()
+                    next_hb = time.monotonic() + hb_period
                 self._watchdog()
             return
         period = 1.0 / self.options.sync_hz
         next_t = time.monotonic()
         failing = False
+        hb_period = self.options.heartbeat_ms / 1000.0
+        next_hb = next_t
         while not self._stop.is_set():
             delay = next_t - time.monotonic()
             if delay > 0 and self._stop.wait(delay):
@@ -377,6 +415,9 @@ class Cia402CanMotor(Cia402Motor):
             now = time.monotonic()
             if now - next_t > period:  # fell behind (machine busy): skip, don't burst
                 next_t = now + period
+            if self._master_heartbeat_on and now >= next_hb:
+                self._send_master_heartbeat()
+                next_hb = now + hb_period
             self._watchdog()
 
     def _sync_time_for(self, t_rx: float) -> float:
@@ -539,6 +580,11 @@ class Cia402CanMotor(Cia402Motor):
         if self._closed:
             return
         self._closed = True
+        if self._master_heartbeat_on and self._host_fault is None:
+            try:  # a deliberate close: the drive stops watching our heartbeat, and keeps its state
+                self._write_object(cia402.CONSUMER_HEARTBEAT_TIME, 1, 0)
+            except DriverError as exc:
+                log.warning("node %d: could not switch off the heartbeat consumer: %s", self.node_id, exc)
         self._stop.set()
         if self._sync_thread is not None and self._sync_thread is not threading.current_thread():
             self._sync_thread.join(timeout=2.0)

@@ -9,6 +9,8 @@
   SYNC arrives and sent right after it, event-driven TPDOs (254/255) on change or event timer,
   RPDOs applied on reception (254/255) or at the next SYNC (0-240),
 * heartbeat producer (0x1017; stops while the drive's ``heartbeat_loss`` fault is injected),
+* heartbeat consumer (0x1016:1 = master node << 16 | time in ms): the master's silence is fault
+  0x8130, so a crashed host stops the motor,
 * EMCY producer (0x80 + N) fed by the drive's fault events.
 
 The node owns two threads: a receiver (``bus.recv``) and a ticker (motion, heartbeat,
@@ -87,6 +89,7 @@ class SimCanNode:
         self.tpdo_latency_s = 0.0
         #: the synchronous TPDOs of this many coming SYNCs are not sent (frames lost)
         self.drop_tpdos = 0
+        self._master_heartbeat_seen: float | None = None
         self._delayed: queue.SimpleQueue[tuple[float, list[tuple[int, bytes]]]] = queue.SimpleQueue()
 
     # ------------------------------------------------------------------------------------------
@@ -163,6 +166,9 @@ class SimCanNode:
         if can_id == 0x000:
             if len(data) == 2 and data[1] in (0, n):
                 self._nmt(data[0])
+            return
+        if 0x701 <= can_id <= 0x77F and can_id - 0x700 == self._consumed_node():
+            self._master_heartbeat_seen = time.monotonic()
             return
         if self.nmt_state == NMT_STOPPED:
             return
@@ -298,6 +304,7 @@ class SimCanNode:
                 self.drive.advance()
                 self._flush_emcy()
                 self._event_tpdos(now)
+                self._check_master_heartbeat(now)
                 period_ms = int(self.drive.raw(cia402.PRODUCER_HEARTBEAT_TIME))
                 if period_ms > 0 and now >= self._next_heartbeat:
                     self._next_heartbeat = now + period_ms / 1000.0
@@ -305,6 +312,22 @@ class SimCanNode:
                         self._send(0x700 + self.node_id, bytes([self.nmt_state]))
             except Exception:
                 log.exception("node %d: tick failed", self.node_id)
+
+    def _consumed_node(self) -> int:
+        return (int(self.drive.raw(cia402.CONSUMER_HEARTBEAT_TIME, 1)) >> 16) & 0x7F
+
+    def _check_master_heartbeat(self, now: float) -> None:
+        """Heartbeat consumer (0x1016:1 = node << 16 | ms): monitoring starts with the first
+        heartbeat heard; silence longer than the time is fault 0x8130 (the motor is stopped)."""
+        entry = int(self.drive.raw(cia402.CONSUMER_HEARTBEAT_TIME, 1))
+        timeout_ms = entry & 0xFFFF
+        seen = self._master_heartbeat_seen
+        if not timeout_ms or not (entry >> 16) & 0x7F or seen is None:
+            return
+        if now - seen > timeout_ms / 1000.0:
+            self._master_heartbeat_seen = None  # report once; watch again from the next one
+            log.warning("node %d: heartbeat of node %d lost", self.node_id, (entry >> 16) & 0x7F)
+            self.drive.communication_fault(cia402.ERR_HEARTBEAT)
 
     # ------------------------------------------------------------------------------------------
     # SDO server
@@ -353,6 +376,8 @@ class SimCanNode:
         self.drive.write_bytes(index, subindex, payload)
         if (index, subindex) == (cia402.PRODUCER_HEARTBEAT_TIME, 0):
             self._next_heartbeat = time.monotonic()
+        if (index, subindex) == (cia402.CONSUMER_HEARTBEAT_TIME, 1):
+            self._master_heartbeat_seen = None  # monitoring restarts with the next heartbeat
 
     def _sdo_initiate_download(self, data: bytes, index: int, subindex: int) -> None:
         self._sdo = None

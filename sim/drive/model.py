@@ -320,6 +320,12 @@ class SimDrive:
             self.stalled = False
             self.silent = False
 
+    def communication_fault(self, code: int = cia402.ERR_HEARTBEAT) -> None:
+        """A fault found by a protocol front end (e.g. the master's heartbeat stopped)."""
+        with self.lock:
+            self.advance()
+            self._raise_fault(code)
+
     def _raise_fault(self, code: int) -> None:
         if self._state in (State.FAULT, State.FAULT_REACTION_ACTIVE):
             return

@@ -271,3 +271,58 @@ def test_sim_motor_refuses_other_hosts() -> None:
 
         sim_motor.run(Namespace(motor="canopen+socketcand://10.1.2.3:0/can0?node=1"))
     assert main(["sim", "motor", "--motor", "sim://?node=1"]) == 1
+
+
+CRASHING_HOST = """
+import math, os, sys
+from drivers.url import open_device
+motor = open_device("motor", sys.argv[1])
+motor.enable()
+motor.jog(math.radians(20.0))
+print("jogging", flush=True)
+sys.stdin.readline()
+os._exit(0)  # the host process dies: no close(), no stop
+"""
+
+
+def test_a_dead_host_stops_the_drive_but_a_closed_one_does_not() -> None:
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    with SimulatedCanDrive() as sim:
+        drive = sim.drive
+        host = subprocess.Popen(
+            [sys.executable, "-c", CRASHING_HOST, sim.url],
+            cwd=REPO,
+            env=env,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        try:
+            assert host.stdout is not None and host.stdin is not None
+            assert host.stdout.readline().strip() == "jogging"
+            assert drive.state is State.OPERATION_ENABLED
+            host.stdin.write("\n")
+            host.stdin.flush()
+            assert host.wait(timeout=10) == 0
+        finally:
+            if host.poll() is None:
+                host.kill()
+                host.wait()
+        deadline = time.monotonic() + 5.0
+        while drive.state is not State.FAULT:
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+        assert drive.read(cia402.ERROR_CODE) == cia402.ERR_HEARTBEAT
+        assert drive.read(cia402.VELOCITY_ACTUAL) == 0
+
+        # a deliberate close keeps the drive turning (lrms motor jog; ...; lrms motor stop)
+        drive.write(cia402.CONTROLWORD, 0, 0x00)
+        drive.write(cia402.CONTROLWORD, 0, 0x80)
+        motor = open_device("motor", sim.url)
+        motor.enable()
+        motor.jog(math.radians(20.0))
+        motor.close()
+        consumer_s = 5 * 0.1  # heartbeat_lost x heartbeat_ms
+        time.sleep(consumer_s + 0.3)
+        assert drive.state is State.OPERATION_ENABLED
+        assert drive.read(cia402.VELOCITY_ACTUAL) != 0
