@@ -19,7 +19,7 @@ other interface the host part (or the path) is the channel. Options:
 ``master_id``      127        node id of this driver's own heartbeat (every ``heartbeat_ms``),
                               which the drive consumes (0x1016:1, same tolerance): if this
                               process dies the drive faults (0x8130) and stops; 0 = off
-``sdo_timeout``    0.5        seconds to wait for each SDO response
+``sdo_timeout``    1.0        seconds to wait for each SDO response
 ``bitrate``        (none)     passed to python-can for interfaces that need it
 ``counts_per_rev`` (config)   encoder counts per motor revolution, overrides the DriveConfig
 ``gear_ratio``     (config)   motor revolutions per output revolution, overrides the DriveConfig
@@ -97,7 +97,7 @@ class CanUrlOptions:
     heartbeat_ms: int = 100
     heartbeat_lost: float = 5.0
     master_id: int = 127
-    sdo_timeout: float = 0.5
+    sdo_timeout: float = 1.0
     counts_per_rev: int | None = None
     gear_ratio: float | None = None
 
@@ -119,7 +119,7 @@ def read_url_options(url: DeviceURL) -> CanUrlOptions:
         heartbeat_ms=url.get_int("heartbeat_ms", 100, lo=0, hi=65535),
         heartbeat_lost=url.get_float("heartbeat_lost", 5.0, lo=1.5, hi=100.0),
         master_id=url.get_int("master_id", 127, lo=0, hi=127),
-        sdo_timeout=url.get_float("sdo_timeout", 0.5, lo=0.01, hi=30.0),
+        sdo_timeout=url.get_float("sdo_timeout", 1.0, lo=0.01, hi=30.0),
         counts_per_rev=url.get_int("counts_per_rev", lo=1) if url.has("counts_per_rev") else None,
         gear_ratio=url.get_float("gear_ratio") if url.has("gear_ratio") else None,
     )
@@ -564,12 +564,18 @@ class Cia402CanMotor(Cia402Motor):
                 if last is not None and last[0] > t:
                     return last[1]
                 remaining = deadline - self.clock()
-                flowing = self._last_tpdo_rx is not None and self.clock() - self._last_tpdo_rx < 0.25
-                if remaining <= 0 or not flowing:
+                if remaining <= 0 or not self._tpdos_expected():
                     break
                 self._sw_cond.wait(min(remaining, 0.05))
         # no TPDOs (no SYNC, node not Operational) or none in time: ask directly
         return self._read_object(cia402.STATUSWORD)
+
+    def _tpdos_expected(self) -> bool:
+        """Worth waiting for a TPDO: we produce SYNC and the drive has answered before, or
+        another master's SYNCs brought TPDOs within the last 0.25 s."""
+        if self._last_tpdo_rx is None:
+            return False
+        return bool(self.options.sync_hz) or self.clock() - self._last_tpdo_rx < 0.25
 
     @property
     def heartbeat_state(self) -> int | None:
