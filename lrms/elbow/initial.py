@@ -311,7 +311,12 @@ def _from_ends(
 
     p = params_for(a0)
     if flange:
+        # the slices measured the flanges: D and Df from the pose, then A from the tube's D
         p = _sizes_from_pose(sample, p, True)
+        if ratio is not None:
+            p = replace(params_for(ratio * p.D), D=p.D, Df=p.Df)
+            p = _sizes_from_pose(sample, p, True)
+            p = replace(params_for(ratio * p.D), D=p.D, Df=p.Df)
     if ratio is None:
         a_best = _golden(lambda a: _trimmed_cost(sample, replace(params_for(a), D=p.D, Df=p.Df)), 0.5 * p.D, 2.0 * p.D)
         p = replace(params_for(max(a_best, 0.45 * p.D)), D=p.D, Df=p.Df)
