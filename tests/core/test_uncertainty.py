@@ -144,3 +144,19 @@ def test_monte_carlo_interval_checks_its_arguments() -> None:
     mc = monte_carlo_interval(fit, rays.subset(fit.inliers), noise=NM, n=50, rng=np.random.default_rng(2))
     assert mc.low < fit.diameter < mc.high and mc.n_failed == 0
     assert mc.std == pytest.approx(fit.std_diameter, rel=0.4)
+
+
+def test_monte_carlo_order_statistics_hold_a_further_draw_at_the_claimed_rate() -> None:
+    from lrms.uncertainty import coverage_order_statistics
+
+    rng = np.random.default_rng(5)
+    draws = rng.normal(size=(20_000, 201))
+    lo_hi = np.array([coverage_order_statistics(row[:200], 0.95) for row in draws])
+    inside = np.mean((draws[:, 200] >= lo_hi[:, 0]) & (draws[:, 200] <= lo_hi[:, 1]))
+    assert abs(inside - 191 / 201) < 4 * np.sqrt(0.95 * 0.05 / 20_000)  # 5th..196th of 200
+    # plain 2.5 / 97.5 % quantiles fall short of 95 %
+    q = np.quantile(draws[:, :200], [0.025, 0.975], axis=1)
+    plain = np.mean((draws[:, 200] >= q[0]) & (draws[:, 200] <= q[1]))
+    assert plain < 0.95 - 3 * np.sqrt(0.95 * 0.05 / 20_000)
+    with pytest.raises(LrmsError):
+        coverage_order_statistics(np.arange(20.0), 0.95)
