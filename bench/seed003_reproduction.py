@@ -82,13 +82,14 @@ def lrms_sweep(
     rng: np.random.Generator,
     clutter: float = 0.1,
     motor_step_deg: float = 0.25,
-    full_room: bool = False,
+    scene_name: str = "seed003",
     crop: bool = True,
 ) -> tuple[FloatArray, Cylinder, Rays]:
     """A noisy LRMS sweep ray-cast with ``sim.scene`` (helper B's scene, LMS100 sensor model).
 
-    The part is the scene's 137.5 mm cylinder on its table (``full_room``: with the room and its
-    clutter objects, scene "seed003"; else scene "seed003-bare"); the motor turns from -35 to 75 deg
+    The part is the scene's 137.5 mm cylinder on its table (scene "seed003": with the room and its
+    clutter objects, a box and a bottle on the table; "seed003-bare": part and table only); the
+    motor turns from -35 to 75 deg
     in ``motor_step_deg``. With ``crop`` the cloud is cut to a box around the table (as an
     operator's region of interest would), then ``clutter`` times as many uniform random points
     are added in that box where the part does not hide them (not inside or behind it). Returns
@@ -103,18 +104,19 @@ def lrms_sweep(
         SEED003_HEIGHT,
         SensorModel,
         cast_beams,
+        get_scene,
         lms1xx_device_angles,
     )
-    from sim.scene.library import seed003, seed003_bare
 
-    scene = seed003() if full_room else seed003_bare()
+    scene = get_scene(scene_name)
     cal = RigCalibration()
     dev = lms1xx_device_angles(0.25)
     dev = dev[(dev > np.deg2rad(60)) & (dev < np.deg2rad(120))]
     mot = np.deg2rad(np.arange(-35.0, 75.0, motor_step_deg))[:, None]
     samples = cast_beams(scene, cal, SensorModel(), dev, mot, rng)
     pts = samples.points(cal)
-    on_part = samples.valid & (samples.index == 0)
+    part_index = [o.name for o in scene.objects].index("cylinder")
+    on_part = samples.valid & (samples.index == part_index)
     o, d = cal.world_rays(np.broadcast_to(dev, on_part.shape)[on_part], np.broadcast_to(mot, on_part.shape)[on_part])
     part_rays = Rays(o, d, samples.ranges[on_part], np.full(o.shape[0], SensorModel().sigma_l), np.ones(o.shape[0]))
     c0 = np.asarray(SEED003_AXIS_POINT)
@@ -246,7 +248,7 @@ def section_coverage(n_scans: int, n_mc: int, k: float, points: str, rng: np.ran
     print(f"  ({dt:.0f} s)")
 
 
-def section_accuracy(n_sweeps: int, rng: np.random.Generator) -> None:
+def section_accuracy(n_sweeps: int, rng: np.random.Generator, scene_name: str = "seed003") -> None:
     from lrms.crb import cylinder_crb
     from lrms.cylinder import fit_cylinder
 
@@ -257,7 +259,7 @@ def section_accuracy(n_sweeps: int, rng: np.random.Generator) -> None:
     t0 = time.perf_counter()
     err, crb, n_in, n_pts, fails = [], [], [], [], 0
     for _ in range(n_sweeps):
-        pts, part, part_rays = lrms_sweep(rng, clutter=0.1)
+        pts, part, part_rays = lrms_sweep(rng, clutter=0.1, scene_name=scene_name)
         try:
             fit = fit_cylinder(pts, noise=noise, rng=rng)
         except LrmsError as exc:  # counted and reported
@@ -286,6 +288,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--k", type=float, default=1.0)
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--points", choices=["567", "sweep"], default="567")
+    ap.add_argument("--scene", default="seed003", help="sim.scene scene of the accuracy sweeps")
     ap.add_argument(
         "--only", choices=["intervals", "bias", "coverage", "accuracy"], nargs="*", default=None, help="sections to run"
     )
@@ -300,7 +303,7 @@ def main(argv: list[str] | None = None) -> int:
     if "coverage" in only:
         section_coverage(args.scans, args.mc, args.k, args.points, rng)
     if "accuracy" in only:
-        section_accuracy(args.sweeps, rng)
+        section_accuracy(args.sweeps, rng, args.scene)
     return 0
 
 

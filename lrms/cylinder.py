@@ -864,11 +864,28 @@ def _reindex(fit: CylinderFit, use: IntArray, n_points: int) -> CylinderFit:
     )
 
 
+#: A line-of-sight fit whose chi2/dof exceeds this is not explained by the range noise alone.
+CHI2_PLAUSIBLE = 1.3
+
+
+def _better(a: CylinderFit, b: CylinderFit) -> bool:
+    """Is fit ``a`` preferable to ``b``? Fits the noise model explains (chi2/dof below
+    CHI2_PLAUSIBLE) beat those it does not; among equals, more inliers win (a wrong, larger
+    cylinder through the part and its surroundings can collect more points, at a worse chi2)."""
+    if a.line_of_sight and b.line_of_sight:
+        ok_a, ok_b = a.chi2_dof < CHI2_PLAUSIBLE, b.chi2_dof < CHI2_PLAUSIBLE
+        if ok_a != ok_b:
+            return ok_a
+        if not ok_a:
+            return a.chi2_dof < b.chi2_dof
+    return a.n_inliers > b.n_inliers
+
+
 def _plausible(fit: CylinderFit, pts: FloatArray, start: Cylinder, opt: DetectOptions) -> bool:
     """Accept a fit without further RANSAC attempts: the noise model explains it and it keeps
     most of the points that lay near the RANSAC candidate."""
     near = int(np.count_nonzero(np.abs(start.surface_distance(pts)) < opt.threshold))
-    chi_ok = fit.chi2_dof < 2.0 or not fit.line_of_sight
+    chi_ok = fit.chi2_dof < CHI2_PLAUSIBLE or not fit.line_of_sight
     return chi_ok and fit.n_inliers >= 0.7 * near
 
 
@@ -919,7 +936,7 @@ def fit_cylinder(
         except FitError as exc:
             errors.append(str(exc))
             continue
-        if best is None or fit.n_inliers > best.n_inliers:
+        if best is None or _better(fit, best):
             best, plane = fit, pl
         if initial is None and _plausible(fit, pts, start, opt):
             break
