@@ -38,12 +38,12 @@ FloatArray = NDArray[np.float64]
 _channels = itertools.count(1)
 
 
-#: The elbow scene: a 90 deg pipe elbow (D = 160 mm, bend radius A = 400 mm) about 2.5 m in front of
-#: the rig, its bend plane facing the rig, within the default sweep (beta -2 .. 63 deg); a floor.
-ELBOW_CENTER = (0.35, 2.5, 0.05)
+#: The elbow scene: a 90 deg pipe elbow (D = 250 mm, bend radius A = 350 mm) 1.8 m in front of the
+#: rig, its bend plane facing the rig, within beta -6 .. 72 deg; a floor.
+ELBOW_CENTER = (0.3, 1.8, 0.05)
 ELBOW_AXIS = (0.0, -1.0, 0.0)
-ELBOW_BEND_RADIUS = 0.4
-ELBOW_DIAMETER = 0.16
+ELBOW_BEND_RADIUS = 0.35
+ELBOW_DIAMETER = 0.25
 
 
 def elbow_scene() -> Scene:
@@ -63,7 +63,7 @@ def _register_scenes() -> None:
     from sim.scene import list_scenes, register_scene
 
     if "elbow" not in list_scenes():
-        register_scene("elbow", elbow_scene, "a 90 deg pipe elbow, D 160 mm, A 400 mm, 2.5 m ahead; floor")
+        register_scene("elbow", elbow_scene, "a 90 deg pipe elbow, D 250 mm, A 350 mm, 1.8 m ahead; floor")
 
 
 _register_scenes()
