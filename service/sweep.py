@@ -211,32 +211,33 @@ def map_sweep(
     t_ref = int(mt[0])
     counts = np.fromiter((s.ranges_m.size for s in scans), dtype=np.int64, count=len(scans))
     total = int(counts.sum())
-    scan_idx = np.repeat(np.arange(len(scans), dtype=np.int64), counts)
+    ranges_all = np.concatenate([s.ranges_m for s in scans]).astype(np.float64, copy=False)
+    # only beams with a usable echo go through timing, interpolation and Eq. 1
+    no_echo = ranges_all <= 0.0
+    out_of_range = ~no_echo & ((ranges_all < min_range_m) | (ranges_all > max_range_m))
+    echo = np.flatnonzero(~no_echo & ~out_of_range)
     starts = np.concatenate(([0], np.cumsum(counts)[:-1]))
-    beam = np.arange(total, dtype=np.int64) - np.repeat(starts, counts)
-    ranges = np.concatenate([s.ranges_m for s in scans]).astype(np.float64, copy=False)
+    scan_idx = np.searchsorted(starts, echo, side="right") - 1
+    beam = echo - starts[scan_idx]
+    ranges = ranges_all[echo]
     t0 = np.array([s.t0_us for s in scans], dtype=np.float64)
     dt = np.array([s.beam_dt_us for s in scans], dtype=np.float64)
     a0 = np.array([s.start_angle_rad for s in scans], dtype=np.float64)
     da = np.array([s.step_rad for s in scans], dtype=np.float64)
     dev_us = t0[scan_idx] + beam * dt[scan_idx]
-    device_angle = a0[scan_idx] + beam * da[scan_idx]
     # host seconds relative to the first motor sample (keeps float64 resolution at ns level)
     host_rel = clock.to_host(dev_us) - t_ref * 1e-9
     motor_rel = (mt - t_ref) * 1e-9
-    motor_at_beam = interpolate_angle(host_rel, motor_rel, ma)
-    beta = calibration.beta(motor_at_beam)
-    no_echo = ranges <= 0.0
-    out_of_range = ~no_echo & ((ranges < min_range_m) | (ranges > max_range_m))
+    beta = calibration.beta(interpolate_angle(host_rel, motor_rel, ma))
     no_motor = np.isnan(beta)
-    keep = ~no_echo & ~out_of_range & ~no_motor
-    outside = np.zeros(total, dtype=bool)
+    keep = ~no_motor
+    outside = np.zeros(beta.shape, dtype=bool)
     if beta_window is not None:
         lo, hi = sorted(beta_window)
         with np.errstate(invalid="ignore"):
             outside = keep & ((beta < lo) | (beta > hi))
         keep &= ~outside
-    alpha = calibration.alpha(device_angle[keep])
+    alpha = calibration.alpha(a0[scan_idx[keep]] + beam[keep] * da[scan_idx[keep]])
     pts = forward(ranges[keep], alpha, beta[keep], calibration.p)
     if not np.array_equal(calibration.world_from_rig, np.eye(4)):
         pts = calibration.to_world(pts)
@@ -245,13 +246,13 @@ def map_sweep(
         ranges=ranges[keep],
         alpha=alpha,
         beta=beta[keep],
-        scan_index=scan_idx[keep],
+        scan_index=scan_idx[keep].astype(np.int64),
         beam_time_s=host_rel[keep],
         t_ref_ns=t_ref,
         beams_total=total,
         beams_no_echo=int(no_echo.sum()),
         beams_out_of_range=int(out_of_range.sum()),
-        beams_without_motor=int((no_motor & ~no_echo & ~out_of_range).sum()),
+        beams_without_motor=int(no_motor.sum()),
         beams_outside_sweep=int(outside.sum()),
     )
 
