@@ -80,3 +80,15 @@ def test_bad_configs_are_clear_errors(text: str, message: str) -> None:
 def test_missing_file(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="cannot read config"):
         load_config(tmp_path / "nope.toml")
+
+
+def test_the_real_rig_example_in_the_docs_is_valid() -> None:
+    import re
+
+    from tests.conftest import REPO
+
+    doc = (REPO / "docs" / "service.md").read_text()
+    block = re.search(r"A real rig:\n\n```toml\n(.*?)```", doc, re.S)
+    assert block is not None
+    cfg = parse_toml(block.group(1))
+    assert not cfg.is_sim and cfg.motor.url is not None and cfg.motor.url.startswith("canopen+socketcan://")
