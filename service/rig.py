@@ -163,7 +163,9 @@ def finish_measurement(
     try:
         result = fitting.fit(mapped, request, config)
     except FitError as exc:
-        raise FitError(f"{exc} ({mapped.points.shape[0]} points mapped)") from exc
+        err = FitError(f"{exc} ({mapped.points.shape[0]} points mapped)")
+        err.partial_result = info  # type: ignore[attr-defined]
+        raise err from exc
     result.update(info)
     return mapped, result
 
@@ -390,7 +392,12 @@ class Rig:
             try:
                 mapped, result = finish_measurement(recorder, cfg, req, sweep, outcome.t_start_ns, outcome.t_end_ns)
             except (FitError, SweepError) as exc:
-                logf.log_json(mcaplog.TOPIC_RESULT, now_ns(), {"state": "failed", "reason": str(exc)})
+                partial = getattr(exc, "partial_result", None)
+                if partial is not None:  # the sweep's counters, so a failed fit still says what was measured
+                    ctx.info["partial_result"] = mcaplog.json_safe(partial)
+                logf.log_json(
+                    mcaplog.TOPIC_RESULT, now_ns(), {"state": "failed", "reason": str(exc), "partial_result": partial}
+                )
                 raise
             logf.log_cloud(now_ns(), mapped.points)
             write_ply(ctx.cloud_path, mapped)

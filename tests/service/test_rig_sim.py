@@ -290,3 +290,19 @@ def test_elbow_target_on_the_simulated_elbow(tmp_path: Path) -> None:
     assert abs(res["diameter_m"] - ELBOW_DIAMETER) < 0.01, res
     if abs(res["bend_radius_m"] - ELBOW_BEND_RADIUS) >= 0.03:  # the degenerate solution seen offline
         assert res["bend_radius_m"] < 0.05, res
+
+
+def test_nothing_in_the_region_of_interest_fails_with_the_reason_and_the_counts(
+    sim_service: tuple[Any, Any, httpx.Client],
+) -> None:
+    _, _, client = sim_service
+    req = {
+        "target": "cylinder",
+        "sweep": {"start_deg": 0, "stop_deg": 8, "speed_deg_s": 20},
+        "roi": {"min_m": [5, 5, 5], "max_m": [6, 6, 6]},
+    }
+    mid = client.post("/api/v1/measurements", json=req, headers=AUTH).json()["id"]
+    body = _wait(client, mid, {"done", "failed"})
+    assert body["state"] == "failed" and "no points inside the region of interest" in body["error"]
+    assert body["result"]["sweep"]["scans_received"] > 0 and body["result"]["mapping"]["points"] > 0
+    assert body["has_raw"] and body["has_cloud"] is False
