@@ -130,6 +130,12 @@ def test_measures_the_cylinder_with_the_rig_in_another_process(sim_process: dict
         out = replay(path)
         assert out["reproduced"] is True, out["max_abs_diff"]
         assert out["result"]["diameter_m"] == pytest.approx(res["diameter_m"], abs=1e-9)
+        # a log cut short (as by a crash mid-sweep) replays what its complete chunks hold
+        cut = tmp_path / "cut.mcap"
+        cut.write_bytes(raw.content[: len(raw.content) * 2 // 3])
+        partial = replay(cut)
+        assert partial["truncated"] is True and partial["reproduced"] is None
+        assert 0 < partial["result"]["sweep"]["scans_received"] < res["sweep"]["scans_received"]
     finally:
         svc.stop()
         rig.close()
