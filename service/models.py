@@ -47,8 +47,16 @@ class RoiSpec(_Strict):
 
 class FitOptions(_Strict):
     k: float | None = Field(default=None, gt=0.0, le=10.0, description="coverage factor of the critical-point interval")
-    monte_carlo: int = Field(default=0, ge=0, le=2000, description="Monte Carlo refits for interval (c); 0 = off")
+    monte_carlo: int = Field(
+        default=0, ge=0, le=2000, description="Monte Carlo refits for the 95 % interval (GUM-S1): 0 = off, else >= 40"
+    )
     seed: int | None = Field(default=None, description="random seed of RANSAC and Monte Carlo")
+
+    @model_validator(mode="after")
+    def _enough_replicas(self) -> FitOptions:
+        if 0 < self.monte_carlo < 40:
+            raise ValueError(f"monte_carlo = {self.monte_carlo}: a 95 % interval needs at least 40 replicas (or 0)")
+        return self
 
 
 class MeasurementRequest(_Strict):

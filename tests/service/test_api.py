@@ -125,6 +125,7 @@ def test_no_token_configured_disables_writes(tmp_path: Path, monkeypatch: pytest
         ({"target": "cylinder", "roi": {"min_m": [0, 0, 0], "max_m": [1, -1, 1]}}, "below max_m"),
         ({"target": "cylinder", "options": {"kk": 3}}, "body.options.kk: Extra inputs are not permitted"),
         ({"target": "cylinder", "colour": "red"}, "body.colour"),
+        ({"target": "cylinder", "options": {"monte_carlo": 20}}, "at least 40 replicas"),
     ],
 )
 def test_bad_measurement_requests_are_422_with_a_message(
