@@ -254,7 +254,8 @@ def section_accuracy(n_sweeps: int, rng: np.random.Generator, scene_name: str = 
 
     noise = NoiseModel()
     print(
-        f"\n== accuracy: {n_sweeps} ray-cast LRMS sweeps (sim.scene seed003-bare: 137.5 mm part, table, 10 % clutter)"
+        f"\n== accuracy: {n_sweeps} ray-cast LRMS sweeps (sim.scene {scene_name!r}: 137.5 mm part, table,"
+        " + 10 % uniform clutter)"
     )
     t0 = time.perf_counter()
     err, crb, n_in, n_pts, fails = [], [], [], [], 0

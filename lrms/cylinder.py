@@ -647,7 +647,8 @@ def refine_cylinder(
 class DetectOptions:
     """Tuning of :func:`detect_cylinder` and :func:`fit_cylinder`; distances in metres.
 
-    ``attempts``: independent RANSAC runs; the refined fit with the most inliers wins.
+    ``attempts``: independent RANSAC runs (stopping early at a plausible fit); while no fit is
+    plausible (see :func:`_plausible`) up to ``max_attempts``. The best fit by :func:`_better` wins.
     """
 
     sample_size: int = 3000
@@ -662,6 +663,7 @@ class DetectOptions:
     min_trials: int = 200
     min_inliers: int = 20
     attempts: int = 3
+    max_attempts: int = 10
 
 
 def detect_plane(
@@ -881,6 +883,10 @@ def _better(a: CylinderFit, b: CylinderFit) -> bool:
     return a.n_inliers > b.n_inliers
 
 
+def _noise_explains(fit: CylinderFit) -> bool:
+    return fit.chi2_dof < CHI2_PLAUSIBLE or not fit.line_of_sight
+
+
 def _plausible(fit: CylinderFit, pts: FloatArray, start: Cylinder, opt: DetectOptions) -> bool:
     """Accept a fit without further RANSAC attempts: the noise model explains it and it keeps
     most of the points that lay near the RANSAC candidate."""
@@ -924,7 +930,10 @@ def fit_cylinder(
     best: CylinderFit | None = None
     plane: tuple[FloatArray, float] | None = None
     errors: list[str] = []
-    for _ in range(1 if initial is not None else max(opt.attempts, 1)):
+    n_try = 1 if initial is not None else max(opt.attempts, opt.max_attempts, 1)
+    for attempt in range(n_try):
+        if attempt >= max(opt.attempts, 1) and best is not None and _noise_explains(best):
+            break
         try:
             if initial is not None:
                 start, pl = initial, None
