@@ -44,6 +44,8 @@ from lrms.errors import FitError
 
 FloatArray = NDArray[np.float64]
 
+#: A solution with A below this multiple of D is degenerate (a torus with A < D/2 cuts itself).
+MIN_RATIO = 0.45
 #: Fewest points accepted for a fit.
 MIN_POINTS = 30
 #: Huber threshold of the robust start, in robust standard deviations of the residuals.
@@ -242,7 +244,8 @@ def fit_elbow(
     orthogonal distance of a noisy point is biased by about ``sigma^2 / (2 rho)``, all with one
     sign (measured on joint f of Table 1: a bend radius 1 mm short at 1 mm noise without the
     gate). The set of points used is fixed when the least-squares iterations start.
-    Raises :class:`FitError` for too few points, singular normal equations or no convergence.
+    Raises :class:`FitError` for too few points, singular normal equations, no convergence, or a
+    degenerate solution (``A < 0.45 D``).
     """
     pts = as_points(points)
     n = pts.shape[0]
@@ -368,6 +371,11 @@ def fit_elbow(
     if not converged:
         what = "stalled (no step reduces the residuals)" if stalled else f"did not converge in {max_iter} iterations"
         raise FitError(f"the elbow adjustment {what}")
+    if params.A < MIN_RATIO * params.D:
+        raise FitError(
+            f"degenerate solution: bend radius A = {params.A * 1e3:.1f} mm is below half the diameter "
+            f"D = {params.D * 1e3:.1f} mm (the torus would cut itself); the points do not determine an elbow"
+        )
     # final residuals and statistics at the solution (points used in the last iteration)
     f_fin, amat, b = design_matrices(pts, params, ratio, has_flange)
     mm = _weights_denominator(b, q)
