@@ -237,9 +237,9 @@ def table_tr(
     start = "automatic start" if auto else "start: truth perturbed"
     rt = "A/D fixed" if fixed_ratio else "A/D free"
     print(f"\n{title}  (ours / seed; dT mm, dR deg; {reps} reps, {kind} noise, {start}, {rt})")
-    head = f"{'joint':<22}" + "".join(f"{'+-' + format(n, 'g') + ' mm':>30}" for n in noises)
+    head = f"{'joint':<22}" + "".join(f"{'+-' + format(n, 'g') + ' mm':>36}" for n in noises)
     print(head)
-    print(f"{'':<22}" + "".join(f"{'dT ours/seed':>15}{'dR ours/seed':>15}" for _ in noises))
+    print(f"{'':<22}" + "".join(f"{'dT ours/seed':>18}{'dR ours/seed':>18}" for _ in noises))
     out: dict[str, list[Cell]] = {}
     wins = total = 0
     for r in rows:
@@ -253,7 +253,7 @@ def table_tr(
             sv = seed_tab[r][k]
             st = _seed_fmt(None if sv is None else sv[0], "t")
             sr = _seed_fmt(None if sv is None else sv[1], "r")
-            line += f"{_fmt(cell, 't') + '/' + st:>15}{_fmt(cell, 'r') + '/' + sr:>15}"
+            line += f"{_fmt(cell, 't') + '/' + st:>18}{_fmt(cell, 'r') + '/' + sr:>18}"
             total += 2
             wins += _at_or_below(cell.d_t if cell.n_ok else math.nan, None if sv is None else sv[0], 1)
             wins += _at_or_below(cell.d_r if cell.n_ok else math.nan, None if sv is None else sv[1], 3)
