@@ -248,19 +248,21 @@ def section_coverage(n_scans: int, n_mc: int, k: float, points: str, rng: np.ran
     print(f"  ({dt:.0f} s)")
 
 
-def section_accuracy(n_sweeps: int, rng: np.random.Generator, scene_name: str = "seed003") -> None:
+def section_accuracy(
+    n_sweeps: int, rng: np.random.Generator, scene_name: str = "seed003", clutter: float = 0.1
+) -> None:
     from lrms.crb import cylinder_crb
     from lrms.cylinder import fit_cylinder
 
     noise = NoiseModel()
     print(
         f"\n== accuracy: {n_sweeps} ray-cast LRMS sweeps (sim.scene {scene_name!r}: 137.5 mm part, table,"
-        " + 10 % uniform clutter)"
+        f" + {100 * clutter:g} % uniform clutter)"
     )
     t0 = time.perf_counter()
     err, crb, n_in, n_pts, fails = [], [], [], [], 0
     for _ in range(n_sweeps):
-        pts, part, part_rays = lrms_sweep(rng, clutter=0.1, scene_name=scene_name)
+        pts, part, part_rays = lrms_sweep(rng, clutter=clutter, scene_name=scene_name)
         try:
             fit = fit_cylinder(pts, noise=noise, rng=rng)
         except LrmsError as exc:  # counted and reported
@@ -290,6 +292,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--points", choices=["567", "sweep"], default="567")
     ap.add_argument("--scene", default="seed003", help="sim.scene scene of the accuracy sweeps")
+    ap.add_argument("--clutter", type=float, default=0.1, help="share of uniform clutter points (accuracy)")
     ap.add_argument(
         "--only", choices=["intervals", "bias", "coverage", "accuracy"], nargs="*", default=None, help="sections to run"
     )
@@ -304,7 +307,7 @@ def main(argv: list[str] | None = None) -> int:
     if "coverage" in only:
         section_coverage(args.scans, args.mc, args.k, args.points, rng)
     if "accuracy" in only:
-        section_accuracy(args.sweeps, rng, args.scene)
+        section_accuracy(args.sweeps, rng, args.scene, args.clutter)
     return 0
 
 
