@@ -46,7 +46,7 @@ def test_covariances_of_points_vectorized_and_along_the_beam() -> None:
     for c, x in zip(covs, pts, strict=True):
         lengths, axes = ellipsoid_axes(c, k=1.0)
         # the long axis is the beam: from the optical centre through the point
-        l, a, b = kinematics.inverse(x)
+        _, a, b = kinematics.inverse(x)
         _, d = kinematics.beam_rays(a, b)
         assert abs(float(axes[:, 2] @ d)) > 0.9999
         assert lengths[2] == pytest.approx(NoiseModel().sigma_l, rel=1e-6)

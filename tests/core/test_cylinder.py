@@ -42,7 +42,7 @@ def test_analytic_jacobians_match_central_differences() -> None:
     truth = seed.sweep_points(radius=0.06875, step_beta_deg=1.0)
     pts, rays = seed.noisy_scan(truth, NM, np.random.default_rng(4))
     start = seed.seed_cylinder(0.06875)
-    frame = _Frame.at(Cylinder(start.point + [0.002, -0.003, 0.0], [0.01, 0.02, 1.0], 0.066))
+    frame = _Frame.at(Cylinder(start.point + np.array([0.002, -0.003, 0.0]), [0.01, 0.02, 1.0], 0.066))
     th = np.array([0.003, -0.002, 0.001, 0.0005, 0.001])
     args = (rays.origins, rays.dirs, rays.ranges, rays.sigma_l, rays.sigma_perp)
     res = los_residuals(th, frame, *args)
