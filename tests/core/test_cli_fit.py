@@ -101,3 +101,15 @@ def test_elbow_options_and_a_clear_error_without_the_elbow_module(
     monkeypatch.setitem(sys.modules, "service.cli.fit_elbow", None)  # as if the elbow module were absent
     with pytest.raises(ServiceError, match="elbow model is not available"):
         fit.run(args)
+
+
+def test_elbow_is_delegated_to_the_elbow_fit(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from sim.scene.joints import make_joint
+
+    joint = make_joint("a", noise=0.0005, rng=np.random.default_rng(0))
+    f = tmp_path / "elbow.xyz"
+    write_xyz(f, joint.points)
+    assert main(["fit", str(f), "--model", "elbow", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["model"] == "elbow" and out["file"] == str(f)
+    assert len(out["center_m"]) == 3
