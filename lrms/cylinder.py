@@ -1,30 +1,32 @@
 """Cylinder detection and fitting that honours the rig's noise model.
 
-Pipeline (:func:`fit_cylinder`):
+Pipeline (:func:`fit_cylinder`; the details and measured numbers are in ``docs/cylinder.md``):
 
 1. **Normals** on a random subsample by PCA of k-nearest-neighbour patches (scipy ``cKDTree``),
    as PCL's ``SACMODEL_CYLINDER`` expects them. The subsample keeps the neighbourhoods wider
    than the range noise (about 12 mm on the LMS100), so the normals mean something.
-2. **Table plane** (RANSAC, :class:`lrms.ransac.PlaneModel`): points on the dominant plane whose
-   normals agree with it are removed; the plane is kept to place the cylinder's base.
-3. **Cylinder RANSAC** on minimal samples of 2 points + normals (:class:`CylinderModel`): the
+2. **Cylinder RANSAC** on minimal samples of 2 points + normals (:class:`CylinderModel`): the
    axis direction is ``n1 x n2``, the axis passes through the closest points of the two normal
    lines, the radius is the distance of the first point from that axis. Residual: distance to
    the surface plus a penalty for the angle between the point's normal and the radial direction.
-4. **Refinement** with ``scipy.optimize.least_squares`` on the inliers:
+3. **Support plane** (:func:`support_plane`): the populated slab perpendicular to the axis (the
+   table); its points are set aside and the axis meets it at the base point.
+4. **Refinement** with ``scipy.optimize.least_squares`` (analytic Jacobians):
 
    * *line of sight* (default): every point keeps its beam (origin and direction recovered by
      inverting Eq. 1) and the residual is the measured range minus the range at which that beam
      meets the model cylinder, divided by ``sigma_l``. This is the maximum-likelihood fit for the
      rig's noise, which lies almost entirely along the beam (Eq. 7). A beam that misses the model
-     gets a second residual, its miss distance over the lateral standard deviation
-     ``l * sigma_alpha``, so the objective stays continuous at the silhouette.
+     gets a second residual, its miss distance over a lateral sigma floored at
+     :data:`SILHOUETTE_SIGMA`, so the objective stays continuous at the silhouette. Inliers are
+     re-selected on the candidates (range residual below :data:`INLIER_GATE` sigma, miss below
+     :data:`MISS_GATE` lateral sigmas, with hysteresis), then the fit is restarted from nearby
+     radii (:data:`MULTISTART`) because the silhouette makes the likelihood multi-modal.
    * *orthogonal distance* (``line_of_sight=False``): ``(|distance to axis| - r) / sigma``, the
-     right fit for isotropic noise. On a one-sided view with range noise it is biased low
-     (measured: see ``docs/cylinder.md``).
+     right fit for isotropic noise. On a one-sided view with range noise it is biased low.
 
-   Inliers are then re-selected on the whole cloud (Mahalanobis-like residual below 3.5) and the
-   fit is repeated.
+5. Up to ``DetectOptions.attempts`` RANSAC runs (more while no fit is explained by the noise
+   model); the best fit by :func:`_better` is returned.
 
 The parameters' covariance is expressed in a local frame at the solution: ``theta = (t1, t2,
 s1, s2, r)``, the axis direction ``normalize(w + t1 e1 + t2 e2)``, the axis point ``a + s1 e1 +
