@@ -279,6 +279,9 @@ def section_accuracy(
     print(f"  points per sweep {np.mean(n_pts):.0f}, inliers {np.mean(n_in):.0f}, failures {fails}")
     print(f"  mean diameter error {e.mean():+.4f} mm (s.e. {spread / np.sqrt(e.size):.4f}); goal |mean| <= 0.1 mm")
     print(f"  spread (std) {spread:.4f} mm; Cramer-Rao bound {c:.4f} mm; ratio {spread / c:.3f} (goal <= 1.25)")
+    mad = 1.4826 * float(np.median(np.abs(e - np.median(e))))
+    worst = np.sort(np.abs(e))[-3:][::-1]
+    print(f"  robust spread (1.4826 MAD) {mad:.4f} mm, ratio {mad / c:.3f}; largest |errors| {np.round(worst, 3)} mm")
     print(f"  ({time.perf_counter() - t0:.0f} s)")
 
 
