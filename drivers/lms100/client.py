@@ -402,6 +402,8 @@ class ScannerClient:
         reply = self._request(StartMeasurement(), StartMeasurementReply)
         if reply.status != 0:
             raise MeasurementError(f"{self.address} refused LMCstartmeas (status {reply.status}: not allowed)")
+        # the counters may run on while measurement was stopped on purpose: no scans were lost then
+        self._gaps.reset()
         self._update_session(measuring=True)
 
     def stop_measurement(self) -> None:

@@ -163,6 +163,25 @@ def test_login_configure_measure_run_and_poll(
     assert c.stats.received == 1
 
 
+def test_a_deliberate_measurement_pause_is_not_counted_as_lost(
+    make_server: ServerFactory, clients: list[ScannerClient]
+) -> None:
+    server = make_server("b", realtime=True)
+    c = connect(server, clients)
+    c.login()
+    c.run()
+    c.start_streaming()
+    before = list(c.scans(count=3))
+    c.login()  # Run ended the session's access level
+    c.stop_measurement()
+    time.sleep(0.3)  # the device's scan counter runs on while the laser is off
+    c.start_measurement()
+    c.run()
+    after = list(c.scans(count=3))
+    assert after[0].scan_counter - before[-1].scan_counter > 1  # the counters do jump ...
+    assert c.stats.lost == 0 and c.stats.gaps == 0  # ... but nothing was lost
+
+
 @pytest.mark.parametrize("dialect", ["a", "b"])
 def test_stream_delivers_consecutive_scans_and_unsubscribes(
     make_server: ServerFactory, clients: list[ScannerClient], dialect: str
