@@ -261,9 +261,7 @@ def table_tr(
         out[r] = cells
     print(f"cells at or below the seed's (ours rounded to the seed's 0.1 mm / 0.001 deg): {wins} of {total}")
     dk = [c.d_k for cs in out.values() for c in cs if c.n_ok]
-    print(
-        f"kappa (third rotation, not in the seed): RMSE median {np.median(dk):.3f} deg, max {max(dk):.3f} deg"
-    )
+    print(f"kappa (third rotation, not in the seed): RMSE median {np.median(dk):.3f} deg, max {max(dk):.3f} deg")
     return out
 
 
