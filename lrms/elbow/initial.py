@@ -53,6 +53,8 @@ FLANGE_PATCH = 0.25
 RANSAC_THRESHOLD = 0.015
 #: Points used for the cost of the golden-section searches.
 COST_SAMPLE = 4000
+#: The two ends' slice radii may differ by this factor at most (joints without flanges).
+RADIUS_MISMATCH = 1.5
 #: Fewest points for an automatic start.
 MIN_POINTS = 200
 #: Nominal degrees the estimated degree snaps to when within SNAP_DEG.
@@ -79,7 +81,9 @@ def _frame(w: FloatArray) -> tuple[FloatArray, FloatArray]:
     return e1, np.cross(w, e1)
 
 
-def _slice_cylinder(patch: FloatArray, rng: np.random.Generator, size: float) -> Cylinder:
+def _slice_cylinder(
+    patch: FloatArray, rng: np.random.Generator, size: float, radius_range: tuple[float, float] | None = None
+) -> Cylinder:
     """Cylinder through a slice of pipe: RANSAC on points with normals, then an ODR polish.
 
     The RANSAC (:class:`lrms.cylinder.CylinderModel` in :func:`lrms.ransac.ransac`: axis from two
@@ -91,12 +95,20 @@ def _slice_cylinder(patch: FloatArray, rng: np.random.Generator, size: float) ->
     sub = patch if patch.shape[0] <= 800 else patch[rng.choice(patch.shape[0], 800, replace=False)]
     normals = estimate_normals(sub, k=min(30, sub.shape[0]))
     thr = RANSAC_THRESHOLD * size
+    model_class: type[CylinderModel] = CylinderModel
+    if radius_range is not None:
+
+        class _Ranged(CylinderModel):
+            pass
+
+        _Ranged.radius_range = radius_range
+        model_class = _Ranged
     model: CylinderModel | None = None
     for attempt in range(3):  # noisier clouds need a wider threshold
         try:
             model, _ = ransac(
                 np.hstack([sub, normals]),
-                CylinderModel,
+                model_class,
                 2,
                 thr,
                 max_trials=300,
@@ -140,11 +152,17 @@ def _end_cylinder(
 
 
 def _end_cylinder_fit(
-    pts: FloatArray, end: FloatArray, centroid: FloatArray, size: float, rng: np.random.Generator, flange: bool
+    pts: FloatArray,
+    end: FloatArray,
+    centroid: FloatArray,
+    size: float,
+    rng: np.random.Generator,
+    flange: bool,
+    radius_range: tuple[float, float] | None = None,
 ) -> Cylinder:
     patch = pts[np.linalg.norm(pts - end, axis=1) < (FLANGE_PATCH if flange else PATCH) * size]
     slice_len = FLANGE_SLICE if flange else SLICE
-    cyl = _slice_cylinder(patch, rng, size)
+    cyl = _slice_cylinder(patch, rng, size, radius_range)
     for _ in range(2):
         w = cyl.direction if float((centroid - end) @ cyl.direction) > 0 else -cyl.direction
         t = (pts - cyl.point) @ w
@@ -153,7 +171,7 @@ def _end_cylinder_fit(
             raise FitError("no pipe found near an end of the cloud")
         t0 = float(np.min(t[near]))
         sel = near & (t < t0 + slice_len * cyl.radius)
-        cyl = _slice_cylinder(pts[sel], rng, size)
+        cyl = _slice_cylinder(pts[sel], rng, size, radius_range)
     w = cyl.direction if float((centroid - end) @ cyl.direction) > 0 else -cyl.direction
     return Cylinder(cyl.point, w, cyl.radius)
 
@@ -278,6 +296,28 @@ def _from_ends(
     size = float(np.linalg.norm(e2 - e1))
     c1 = _end_cylinder(pts, e1, centroid, size, g, flange, cache)
     c2 = _end_cylinder(pts, e2, centroid, size, g, flange, cache)
+    r_lo, r_hi = sorted((c1.radius, c2.radius))
+    if not flange and r_hi > RADIUS_MISMATCH * r_lo:
+        # one slice went wrong, most likely the larger (a flat-looking patch): fit it again with
+        # the other's radius (+-30 %); failing that, the other way round
+        order = ((1, 2), (2, 1)) if c1.radius > c2.radius else ((2, 1), (1, 2))
+        for bad, good in order:
+            ref = (c1, c2)[good - 1].radius
+            try:
+                redo = _end_cylinder_fit(pts, (e1, e2)[bad - 1], centroid, size, g, flange, (0.7 * ref, 1.3 * ref))
+            except FitError:
+                continue
+            if bad == 1:
+                c1 = redo
+            else:
+                c2 = redo
+            break
+        r_lo, r_hi = sorted((c1.radius, c2.radius))
+    if 2 * r_hi > size or (not flange and r_hi > RADIUS_MISMATCH * r_lo):
+        raise FitError(
+            f"no elbow found: the pipe ends give radii {c1.radius * 1e3:.0f} and {c2.radius * 1e3:.0f} mm "
+            f"for a cloud {size * 1e3:.0f} mm across"
+        )
     u1, u2 = c1.direction, c2.direction
     normal = np.cross(u1, u2)
     sn = float(np.linalg.norm(normal))
