@@ -10,6 +10,7 @@ themselves contain spaces).
 from __future__ import annotations
 
 import struct
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -99,14 +100,43 @@ def format_ascii_int(value: int, size: int, signed: bool, style: Style = "X") ->
     return (b"%02X" if style == "02X" else b"%X") % value
 
 
-class BinReader:
-    """Sequential reader of CoLa B parameters."""
+class _Reader(ABC):
+    """Sequential reader of one telegram's parameters; the dialects differ in how a value is read."""
 
     __slots__ = ("buf", "pos")
 
     def __init__(self, buf: bytes, pos: int = 0) -> None:
         self.buf = buf
         self.pos = pos
+
+    @abstractmethod
+    def num(self, size: int, signed: bool = False) -> int: ...
+
+    @abstractmethod
+    def real(self) -> float: ...
+
+    @abstractmethod
+    def string(self) -> str: ...
+
+    def get(self, f: Field) -> Any:
+        if f.kind == "int":
+            return self.num(f.size, f.signed)
+        if f.kind == "bool":
+            return self.num(1) != 0
+        if f.kind == "real":
+            return self.real()
+        if f.kind == "str":
+            return self.string()
+        return (self.num(1), self.num(1))
+
+    def at_end(self) -> bool:
+        return self.pos >= len(self.buf)
+
+
+class BinReader(_Reader):
+    """Sequential reader of CoLa B parameters."""
+
+    __slots__ = ()
 
     def unpack(self, st: struct.Struct) -> tuple[Any, ...]:
         try:
@@ -136,33 +166,15 @@ class BinReader:
         n = self.num(2)
         return self.raw(n).decode("latin-1")
 
-    def get(self, f: Field) -> Any:
-        if f.kind == "int":
-            return self.num(f.size, f.signed)
-        if f.kind == "bool":
-            return self.num(1) != 0
-        if f.kind == "real":
-            return self.real()
-        if f.kind == "str":
-            return self.string()
-        return (self.num(1), self.num(1))
-
-    def at_end(self) -> bool:
-        return self.pos >= len(self.buf)
-
     def expect_end(self, what: str) -> None:
         if self.pos != len(self.buf):
             raise TelegramError(f"{what}: {len(self.buf) - self.pos} unexpected trailing bytes")
 
 
-class AsciiReader:
+class AsciiReader(_Reader):
     """Sequential reader of CoLa A parameters (tokens separated by single spaces)."""
 
-    __slots__ = ("buf", "pos")
-
-    def __init__(self, buf: bytes, pos: int = 0) -> None:
-        self.buf = buf
-        self.pos = pos
+    __slots__ = ()
 
     def token(self) -> bytes:
         buf = self.buf
@@ -207,20 +219,6 @@ class AsciiReader:
         if n == 0:
             return ""
         return self.raw(n).decode("latin-1")
-
-    def get(self, f: Field) -> Any:
-        if f.kind == "int":
-            return self.num(f.size, f.signed)
-        if f.kind == "bool":
-            return self.num(1) != 0
-        if f.kind == "real":
-            return self.real()
-        if f.kind == "str":
-            return self.string()
-        return (self.num(1), self.num(1))
-
-    def at_end(self) -> bool:
-        return self.pos >= len(self.buf)
 
     def expect_end(self, what: str) -> None:
         if self.pos < len(self.buf):
