@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+import service.simdevices  # noqa: F401  (registers the sim:// device URLs)
 from drivers.servo import cia402
 from drivers.servo.cia402_can import Cia402CanMotor
 from drivers.url import open_device

@@ -3,7 +3,7 @@
 Examples::
 
     tcp://10.0.0.5:2112?cola=b          # SICK scanner over TCP, CoLa B
-    sim://?scene=seed003                # simulated scanner (handler registered by ``sim``)
+    sim://?scene=seed003                # simulated scanner (handler in service.simdevices)
     canopen+socketcan://can0?node=1     # CiA 402 drive over python-can
     modbus-rtu:///dev/ttyUSB0?baud=115200&unit=1
 
@@ -171,11 +171,9 @@ def open_device(kind: str, url: str | DeviceURL, **kwargs: Any) -> Any:
     return handler(parsed, **kwargs)
 
 
-# Built-in handlers, imported on first use. The ``sim`` schemes live in the ``sim`` package
-# (like pyserial's protocol handler packages), so ``drivers`` never imports it unless asked.
+# Built-in handlers, imported on first use. The ``sim://`` schemes join the simulator and the
+# drivers, so the composition root registers them (``import service.simdevices``).
 register("scanner", "tcp", "drivers.lms100.client:open_url")
-register("scanner", "sim", "sim.scanner.server:open_url")
 register("motor", "canopen+", "drivers.servo.cia402_can:open_url")
 register("motor", "modbus-rtu", "drivers.servo.modbus_backend:open_url")
 register("motor", "modbus-rtu+", "drivers.servo.modbus_backend:open_url")
-register("motor", "sim", "sim.drive.can_node:open_url")

@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+import service.simdevices  # noqa: F401  (registers the sim:// device URLs)
 from drivers.lms100.client import ScannerClient
 from drivers.servo import cia402
 from drivers.url import open_device

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import pytest
 
+import service.simdevices  # noqa: F401  (registers the sim:// device URLs, as the CLI and service do)
+
 REPO = Path(__file__).resolve().parent.parent
 SHARED = REPO.parent / "shared"
 

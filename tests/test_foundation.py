@@ -64,6 +64,31 @@ def test_cli_help_lists_commands() -> None:
         [sys.executable, "-m", "service.cli.main", "--help"], capture_output=True, text=True, cwd=REPO, check=True
     ).stdout
     assert "Laser radar measurement system" in out
+    from service.cli.main import COMMANDS
+
+    for words in COMMANDS:  # every command module imports and is listed
+        assert f"\n    {words[0]} " in out, words
+    sim_out = subprocess.run(
+        [sys.executable, "-m", "service.cli.main", "sim", "--help"],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        check=True,
+    ).stdout
+    assert "scanner" in sim_out and "motor" in sim_out
+
+
+def test_drivers_and_lrms_never_import_sim_or_service() -> None:
+    import re
+
+    pattern = re.compile(r"^\s*(from|import) (sim|service)\b|\"(sim|service)\.[a-z_.]+:", re.M)
+    offenders = [
+        str(path.relative_to(REPO))
+        for pkg in ("drivers", "lrms")
+        for path in (REPO / pkg).rglob("*.py")
+        if pattern.search(path.read_text())
+    ]
+    assert offenders == []
 
 
 def _tool(name: str) -> str:

@@ -19,7 +19,6 @@ import argparse
 import importlib
 import sys
 from collections.abc import Sequence
-from types import ModuleType
 
 # (command words) -> module. A word list of two makes a sub-command group (``lrms sim scanner``).
 COMMANDS: dict[tuple[str, ...], str] = {
@@ -38,15 +37,6 @@ COMMANDS: dict[tuple[str, ...], str] = {
 GROUP_HELP = {"sim": "run a simulated device server (scanner or motor)"}
 
 
-def _load(module_name: str) -> ModuleType | None:
-    try:
-        return importlib.import_module(module_name)
-    except ModuleNotFoundError as exc:
-        if exc.name == module_name:  # command not built yet; anything else is a real error
-            return None
-        raise
-
-
 def build_parser() -> argparse.ArgumentParser:
     from lrms import __version__
 
@@ -56,9 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
     top.required = True
     groups: dict[str, argparse._SubParsersAction] = {}
     for words, module_name in COMMANDS.items():
-        module = _load(module_name)
-        if module is None:
-            continue
+        module = importlib.import_module(module_name)
         if len(words) == 1:
             sub = top.add_parser(words[0], help=module.HELP, description=module.HELP)
         else:
@@ -72,6 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    import service.simdevices  # noqa: F401  (registers the sim:// device URLs)
     from drivers.errors import DriverError
     from lrms.errors import LrmsError
     from service.errors import ServiceError

@@ -16,21 +16,19 @@
 The node owns two threads: a receiver (``bus.recv``) and a ticker (motion, heartbeat,
 event-driven TPDOs). Every frame goes out through one send lock.
 
-:func:`open_url` serves the motor scheme ``sim://``: it starts a simulated drive on a private
-python-can ``virtual`` channel and returns the CANopen driver connected to it.
+The motor URL scheme ``sim://`` (a simulated drive on a private python-can ``virtual`` channel
+with the CANopen driver connected to it) is served by :mod:`service.simdevices`.
 """
 
 from __future__ import annotations
 
 import collections
-import itertools
 import logging
 import queue
 import struct
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any
 
 import can
 
@@ -446,40 +444,3 @@ class SimCanNode:
             self._sdo = None
         else:
             tr.toggle ^= 1
-
-
-# ----------------------------------------------------------------------------------------------
-# sim:// motor URLs
-# ----------------------------------------------------------------------------------------------
-
-_channel_ids = itertools.count(1)
-
-
-def open_url(url: Any, **kwargs: Any) -> Any:
-    """``sim://?node=1&sync_hz=100&heartbeat_ms=50``: a simulated drive on a private python-can
-    ``virtual`` channel in this process, and the CANopen driver connected to it (returned; its
-    ``close()`` also stops the simulated node). Keyword arguments go to the driver
-    (``config=DriveConfig(...)``, ``clock=...``); the simulated drive is ``motor.sim_node.drive``.
-    """
-    from drivers.servo import cia402_can
-    from drivers.url import DeviceURL
-
-    parsed = url if isinstance(url, DeviceURL) else DeviceURL.parse(url)
-    options = cia402_can.read_url_options(parsed)
-    parsed.check_all_used()
-    channel = f"lrms-sim-drive-{next(_channel_ids)}-{id(parsed):x}"
-    node = SimCanNode(can.Bus(interface="virtual", channel=channel), node_id=options.node).start()
-
-    def stop_node() -> None:
-        node.stop()
-        node.bus.shutdown()
-
-    try:
-        motor = cia402_can.Cia402CanMotor.open_bus(
-            {"interface": "virtual", "channel": channel}, options, on_close=stop_node, **kwargs
-        )
-    except BaseException:
-        stop_node()
-        raise
-    motor.sim_node = node
-    return motor

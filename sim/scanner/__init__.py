@@ -1,7 +1,7 @@
 """The simulated SICK LMS100: device state machine, ray-cast scans and a TCP server (CoLa A / B)."""
 
 from sim.scanner.device import ALLOWED_SCAN_CONFIGS, DeviceClock, Session, SimulatedLMS100, SimulatorError
-from sim.scanner.server import ScannerServer, open_url
+from sim.scanner.server import ScannerServer
 
 __all__ = [
     "ALLOWED_SCAN_CONFIGS",
@@ -10,5 +10,4 @@ __all__ = [
     "Session",
     "SimulatedLMS100",
     "SimulatorError",
-    "open_url",
 ]

@@ -1,4 +1,4 @@
-"""TCP server for the simulated LMS100, and the ``sim://`` scanner URL.
+"""TCP server for the simulated LMS100 (the ``sim://`` scanner URL is served by :mod:`service.simdevices`).
 
 :class:`ScannerServer` listens on 127.0.0.1 (port 0: an ephemeral port), serves several clients at
 once (one reader thread each), and streams ``sSN LMDscandata`` events from one producer thread:
@@ -22,9 +22,7 @@ import threading
 import time
 from types import TracebackType
 from typing import Any
-from urllib.parse import urlencode
 
-from drivers.errors import DeviceURLError
 from drivers.lms100 import (
     CoLaConnection,
     CoLaError,
@@ -37,8 +35,6 @@ from drivers.lms100 import (
     decode_payload,
     message_classes,
 )
-from drivers.url import DeviceURL
-from lrms.errors import LrmsError
 from sim.scanner.device import (
     SFA_BUFFER_UNDERFLOW,
     SFA_COLA_A_INVALID_CHARACTER,
@@ -320,60 +316,3 @@ class ScannerServer:
                 except (OSError, CoLaError):
                     self._remove(client)
             next_index = index + 1
-
-
-_SIM_URL_OPTIONS = ("cola", "scene", "realtime", "time_scale", "seed")
-
-
-def open_url(url: DeviceURL, **kw: Any) -> Any:
-    """``sim://?cola=b&scene=seed003&realtime=0``: an embedded simulated scanner plus a connected client.
-
-    Simulator options: ``cola`` (a|b, default b), ``scene`` (default seed003), ``realtime``
-    (default 1), ``time_scale`` (default 1), ``seed`` (default 0). Every other option
-    (``timeout``, ``reconnect``, ``queue``...) goes to the LMS100 client's ``tcp://`` URL, which
-    rejects unknown ones. Keyword arguments ``calibration``, ``motor_angle_at``, ``sensor`` go to
-    :class:`SimulatedLMS100`, all others to :func:`drivers.lms100.client.open_url`.
-
-    Returns the :class:`drivers.lms100.client.ScannerClient`, connected over real TCP to a
-    :class:`ScannerServer` on 127.0.0.1 (ephemeral port); ``client.sim_server`` is that server and
-    ``client.close()`` stops it too.
-    """
-    from drivers.lms100 import client as lms_client
-
-    if url.host or url.port or url.path not in ("", "/"):
-        raise DeviceURLError(f"sim scanner URLs take no host, port or path: {url.raw!r}")
-    cola = url.get_str("cola", "b", choices=("a", "b"))
-    scene = url.get_str("scene", "seed003")
-    realtime = url.get_bool("realtime", True)
-    time_scale = url.get_float("time_scale", 1.0, lo=1e-3, hi=1e6)
-    seed = url.get_int("seed", 0, lo=0)
-    forward = {k: v for k, v in url.query.items() if k not in _SIM_URL_OPTIONS}
-    device_kw = {k: kw.pop(k) for k in ("calibration", "motor_angle_at", "sensor") if k in kw}
-    try:
-        device = SimulatedLMS100(scene, seed=seed, realtime=realtime, time_scale=time_scale, **device_kw)
-    except LrmsError as exc:  # unknown scene name
-        raise DeviceURLError(f"{url.raw!r}: {exc}") from None
-    server = ScannerServer(device, dialect=cola).start()
-    try:
-        host, port = server.address
-        query = urlencode({"cola": cola, **forward})
-        client = lms_client.open_url(DeviceURL.parse(f"tcp://{host}:{port}?{query}"), **kw)
-    except BaseException:
-        server.stop()
-        raise
-    _close_with(client, server)
-    return client
-
-
-def _close_with(client: Any, server: ScannerServer) -> None:
-    """Make ``client.close()`` (and so its context manager) also stop the embedded server."""
-    original = client.close
-
-    def close() -> None:
-        try:
-            original()
-        finally:
-            server.stop()
-
-    client.close = close
-    client.sim_server = server
