@@ -35,12 +35,25 @@ FloatArray = NDArray[np.float64]
 DEFAULT_P = 0.1
 
 
+def _broadcast3(l: ArrayLike, alpha: ArrayLike, beta: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Float arrays of (l, alpha, beta) broadcast together; a clear error if their shapes clash.
+
+    Non-finite values pass through (NaN in, NaN out): a beam without an echo stays marked.
+    """
+    try:
+        l_, a, b = np.broadcast_arrays(np.asarray(l, float), np.asarray(alpha, float), np.asarray(beta, float))
+    except ValueError:
+        shapes = [np.shape(v) for v in (l, alpha, beta)]
+        raise LrmsError(f"range, alpha and beta do not broadcast together: shapes {shapes}") from None
+    return l_, a, b
+
+
 def forward(l: ArrayLike, alpha: ArrayLike, beta: ArrayLike, p: float = DEFAULT_P) -> FloatArray:
     """Eq. 1: map (range, scan angle, motor angle) to rig-frame points, shape ``(..., 3)``.
 
     Inputs broadcast against each other.
     """
-    l_, a, b = np.broadcast_arrays(np.asarray(l, float), np.asarray(alpha, float), np.asarray(beta, float))
+    l_, a, b = _broadcast3(l, alpha, beta)
     r = l_ * np.sin(a) + p
     out = np.empty((*l_.shape, 3), dtype=np.float64)
     out[..., 0] = r * np.cos(b)
@@ -78,7 +91,7 @@ def beam_rays(alpha: ArrayLike, beta: ArrayLike, p: float = DEFAULT_P) -> tuple[
 
 def jacobian(l: ArrayLike, alpha: ArrayLike, beta: ArrayLike, p: float = DEFAULT_P) -> FloatArray:
     """Eq. 6: d(x, y, z)/d(l, alpha, beta), shape ``(..., 3, 3)``."""
-    l_, a, b = np.broadcast_arrays(np.asarray(l, float), np.asarray(alpha, float), np.asarray(beta, float))
+    l_, a, b = _broadcast3(l, alpha, beta)
     sa, ca, sb, cb = np.sin(a), np.cos(a), np.sin(b), np.cos(b)
     r = l_ * sa + p
     j = np.empty((*l_.shape, 3, 3), dtype=np.float64)

@@ -69,3 +69,8 @@ def test_calibration_rejects_bad_config() -> None:
         k.RigCalibration(world_from_rig=np.diag([2.0, 1, 1, 1]))
     with pytest.raises(LrmsError, match="shape"):
         k.inverse(np.zeros((4, 2)))
+    with pytest.raises(LrmsError, match="broadcast"):
+        k.forward(np.ones(3), np.ones(4), 0.0)
+    with pytest.raises(LrmsError, match="broadcast"):
+        k.jacobian(np.ones(3), np.ones(2), 0.0)
+    assert np.isnan(k.forward(np.nan, 0.5, 0.1)).all()  # no echo stays marked
