@@ -47,13 +47,14 @@ the statusword is read by SDO.
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
 import math
 import socket
 import struct
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 from urllib.parse import urlsplit
@@ -325,12 +326,12 @@ class Cia402CanMotor(Cia402Motor):
     # ------------------------------------------------------------------------------------------
     # SDO
     # ------------------------------------------------------------------------------------------
-    def sdo_upload(self, index: int, subindex: int = 0) -> bytes:
-        """Read any object's raw bytes (expedited or segmented upload)."""
+    @contextlib.contextmanager
+    def _sdo_transfer(self, index: int, subindex: int) -> Iterator[None]:
+        """One SDO transfer at a time; canopen's and the bus's exceptions become this package's errors."""
         with self._sdo_lock:
             try:
-                data: bytes = self.node.sdo.upload(index, subindex)
-                return data
+                yield
             except SdoAbortedError as exc:
                 raise SdoAbort(index, subindex, exc.code) from None
             except SdoCommunicationError as exc:
@@ -340,19 +341,16 @@ class Cia402CanMotor(Cia402Motor):
             except (can.CanError, OSError) as exc:
                 raise DeviceConnectionError(f"CAN send failed: {exc}") from exc
 
+    def sdo_upload(self, index: int, subindex: int = 0) -> bytes:
+        """Read any object's raw bytes (expedited or segmented upload)."""
+        with self._sdo_transfer(index, subindex):
+            data: bytes = self.node.sdo.upload(index, subindex)
+            return data
+
     def sdo_download(self, index: int, subindex: int, data: bytes, *, force_segment: bool = False) -> None:
         """Write any object's raw bytes (expedited when <= 4 bytes unless ``force_segment``)."""
-        with self._sdo_lock:
-            try:
-                self.node.sdo.download(index, subindex, data, force_segment=force_segment)
-            except SdoAbortedError as exc:
-                raise SdoAbort(index, subindex, exc.code) from None
-            except SdoCommunicationError as exc:
-                raise SdoTimeout(
-                    f"node {self.node_id}: no SDO answer for 0x{index:04X}:{subindex:02X} ({exc})"
-                ) from None
-            except (can.CanError, OSError) as exc:
-                raise DeviceConnectionError(f"CAN send failed: {exc}") from exc
+        with self._sdo_transfer(index, subindex):
+            self.node.sdo.download(index, subindex, data, force_segment=force_segment)
 
     def _read_object(self, index: int, subindex: int = 0) -> int:
         spec = cia402.object_spec(index, subindex)

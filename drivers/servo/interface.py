@@ -798,8 +798,11 @@ class Cia402Motor(Motor):
         if cia402.decode_state(sw) not in (State.FAULT, State.FAULT_REACTION_ACTIVE):
             return None
         code = self._read_object(cia402.ERROR_CODE)
-        register = self._read_object(cia402.ERROR_REGISTER)
-        return FaultInfo(code, cia402.describe_error_code(code), register, self.clock())
+        return FaultInfo(code, cia402.describe_error_code(code), self._error_register(), self.clock())
+
+    def _error_register(self) -> int:
+        """Object 0x1001 (error register) of a drive in fault; a backend that cannot read it returns 0."""
+        return self._read_object(cia402.ERROR_REGISTER)
 
     def reset_fault(self, timeout: float = 2.0) -> None:
         with self._cmd_lock:

@@ -43,7 +43,7 @@ import serial
 
 from drivers.errors import DeviceConnectionError, DeviceTimeoutError, DeviceURLError
 from drivers.servo import cia402
-from drivers.servo.interface import Cia402Motor, DriveConfig, FaultInfo, MotorFault, MotorSample, ServoError
+from drivers.servo.interface import Cia402Motor, DriveConfig, FaultInfo, MotorSample, ServoError
 from drivers.servo.modbus_map import ModbusMapError, RegisterEntry, RegisterMap, default_map, load_map
 from drivers.servo.modbus_rtu import (
     MAX_FRAME,
@@ -346,20 +346,9 @@ class ModbusMotor(Cia402Motor):
                 self._cond.wait(min(remaining, 0.05))
             return self._last_poll_sw
 
-    def fault(self) -> FaultInfo | None:
-        if self._host_fault is not None:
-            return self._host_fault
-        try:
-            sw = self._fresh_statusword()
-        except MotorFault:
-            if self._host_fault is not None:  # the link was declared lost while we waited
-                return self._host_fault
-            raise
-        if cia402.decode_state(sw) not in (cia402.State.FAULT, cia402.State.FAULT_REACTION_ACTIVE):
-            return None
-        code = self._read_object(cia402.ERROR_CODE)
-        register = self._read_object(cia402.ERROR_REGISTER) if (cia402.ERROR_REGISTER, 0) in self.map else 0
-        return FaultInfo(code, cia402.describe_error_code(code), register, self.clock())
+    def _error_register(self) -> int:
+        """0x1001 when the register map has it; many Modbus drives do not expose it (then 0)."""
+        return self._read_object(cia402.ERROR_REGISTER) if (cia402.ERROR_REGISTER, 0) in self.map else 0
 
     def _clear_host_fault(self) -> None:
         if self._host_fault is None:
