@@ -356,6 +356,24 @@ def test_symlinked_pty_and_a_replacement_map_without_sample_block(tmp_path: Path
     assert not link.exists()
 
 
+def test_a_map_without_the_error_register_reports_the_fault_with_register_0(
+    server: ModbusDriveServer, tmp_path: Path
+) -> None:
+    src = (Path(__file__).resolve().parents[2] / "drivers" / "servo" / "modbus_map.toml").read_text()
+    block = src[src.index('[[register]]\nname = "error_register"') : src.index('[[register]]\nname = "error_code"')]
+    map_path = tmp_path / "map.toml"
+    map_path.write_text(src.replace(block, ""))
+    with open_url(server.url + f"&timeout=0.2&map={map_path}", config=CONFIG) as m:
+        assert isinstance(m, ModbusMotor) and (cia402.ERROR_REGISTER, 0) not in m.map
+        m.enable()
+        server.drive.inject_fault("over_current")
+        wait_for(lambda: m.state is State.FAULT)
+        info = m.fault()
+        assert info is not None and info.code == cia402.ERR_OVER_CURRENT
+        assert info.error_register == 0  # not readable through this map; the drive's own register is 0x03
+        assert server.drive.read(cia402.ERROR_REGISTER) == 0x03
+
+
 # ------------------------------------------------------------------------------------ URL errors
 @pytest.mark.parametrize(
     ("url", "message"),
