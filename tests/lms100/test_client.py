@@ -43,6 +43,7 @@ from drivers.lms100.client import (
 )
 from drivers.url import DeviceURL, open_device
 from sim.scanner import ScannerServer, SimulatedLMS100
+from sim.scanner.device import DeviceClock
 
 FAST = Backoff(initial_s=0.05, factor=2.0, max_s=0.2)
 
@@ -113,7 +114,8 @@ def lost_from_counters(scans: list[Scan]) -> int:
 def test_identity_state_and_configuration_reads(
     make_server: ServerFactory, clients: list[ScannerClient], dialect: str
 ) -> None:
-    server = make_server(dialect)
+    # the device clock has run 1234.5 h (virtual, so it stands still while the test runs)
+    server = make_server(dialect, clock=DeviceClock(realtime=False, start_us=12_345 * 360_000_000 + 7))
     c = connect(server, clients)
     ident = c.device_ident()
     assert (ident.device_name, ident.version) == ("LMS10x_FieldEval", "V1.36-21.10.2010")
@@ -128,7 +130,7 @@ def test_identity_state_and_configuration_reads(
     data_cfg = c.scan_data_config()
     assert data_cfg.output_rate == 1 and data_cfg.output_channel == (1, 0)
     # any other telegram through the generic request
-    assert c.request(ReadOperatingHours(), OperatingHours).tenth_hours >= 0
+    assert c.request(ReadOperatingHours(), OperatingHours).tenth_hours == 12_345
     assert c.request(ReadOutputRange(), OutputRange).start_angle == -450000
     assert c.stats.timeouts == 0 and c.stats.unexpected == 0
 

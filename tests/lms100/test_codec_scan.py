@@ -234,8 +234,13 @@ def test_hex_token_helpers_match_python_int() -> None:
 
 def test_poll_reply_is_a_scan_and_the_request_has_no_parameters() -> None:
     assert PollScan().encode(Dialect.B) == b"sRN LMDscandata"
-    assert isinstance(decode_payload(GOLDEN_A, Dialect.A), ScanDataReply)
-    assert isinstance(Channel, type)
+    assert PollScan().encode(Dialect.A) == b"sRN LMDscandata"
+    reply = decode_payload(GOLDEN_A, Dialect.A)
+    assert isinstance(reply, ScanDataReply)
+    (dist,) = reply.scan.channels_16
+    assert isinstance(dist, Channel) and (dist.name, dist.scale, dist.offset) == ("DIST1", 1.0, 0.0)
+    assert dist.values.dtype == np.uint16 and dist.values.tolist() == [500, 1000, 0]
+    assert np.rad2deg(dist.start_angle_rad) == pytest.approx(-45.0) and np.rad2deg(dist.step_rad) == pytest.approx(0.5)
 
 
 def test_cola_a_scan_with_signed_decimals_takes_the_general_path() -> None:

@@ -34,6 +34,7 @@ from drivers.lms100 import (
     Run,
     RunReply,
     SaveParameters,
+    SaveParametersReply,
     ScanConfig,
     ScanDataConfig,
     ScanDataReply,
@@ -105,7 +106,7 @@ def test_access_levels_and_passwords(fast_server: ScannerServer, connect: Connec
     assert link.request(SetScanConfig.from_hz_deg(50, 0.5)) == ErrorReply(0x01)
     # Authorized client (3) and service (4) may.
     login(link, AccessLevel.AUTHORIZED_CLIENT)
-    assert isinstance(link.request(SetScanConfig.from_hz_deg(50, 0.5)), SetScanConfigReply)
+    assert link.request(SetScanConfig.from_hz_deg(50, 0.5)) == SetScanConfigReply(0, 5000, 1, 5000, -450000, 2250000)
     login(link, AccessLevel.SERVICE)
     assert link.request(WriteScanDataConfig()) == WriteScanDataConfigReply()
     # Run ends the login.
@@ -290,9 +291,10 @@ def test_drop_clients_and_reconnect(fast_server: ScannerServer, connect: Connect
 def test_reboot_restores_saved_configuration(fast_server: ScannerServer, connect: Connect) -> None:
     link = connect(fast_server.address)
     login(link)
-    assert isinstance(link.request(SetScanConfig.from_hz_deg(50, 0.5)), SetScanConfigReply)
-    link.request(SaveParameters())
-    assert isinstance(link.request(SetScanConfig.from_hz_deg(25, 0.25)), SetScanConfigReply)
+    assert link.request(SetScanConfig.from_hz_deg(50, 0.5)) == SetScanConfigReply(0, 5000, 1, 5000, -450000, 2250000)
+    assert link.request(SaveParameters()) == SaveParametersReply(True)
+    assert link.request(SetScanConfig.from_hz_deg(25, 0.25)) == SetScanConfigReply(0, 2500, 1, 2500, -450000, 2250000)
+    assert link.request(ReadScanConfig()) == ScanConfig(2500, 1, 2500, -450000, 2250000)  # applied, not saved
     assert link.request(Reboot()) == RebootReply()
     with pytest.raises((ConnectionError, OSError)):
         link.request(ReadDeviceState())
