@@ -205,7 +205,9 @@ def bench_rest(clients: int, duration: float, interval: float) -> dict[str, Any]
                 except httpx.HTTPError:
                     pass
                 if time.monotonic() > end or proc.poll() is not None:
-                    raise RuntimeError("the service did not start")
+                    proc.kill()
+                    _, err = proc.communicate(10)
+                    raise RuntimeError(f"the service did not start: {err[-2000:]}")
                 time.sleep(0.2)
             paths = ["/healthz", "/api/v1/rig", "/api/v1/measurements?limit=20"]
             # the load generator must not measure its own garbage collector: this process holds

@@ -8,7 +8,8 @@ the crash is unknown, so the sweep is not silently resumed), while ``queued`` on
 and the job runner picks them up again in order.
 
 The connection is shared by the threads of one process behind a lock; the file uses SQLite's
-write-ahead log so readers never wait for a writer.
+write-ahead log so readers never wait for a writer. :attr:`Store.version` tells readers when
+something they cached may be stale.
 """
 
 from __future__ import annotations
@@ -128,6 +129,16 @@ class Store:
         except sqlite3.Error as exc:
             raise StoreError(f"cannot open result store {path}: {exc}") from None
         self._lock = threading.RLock()
+        self._writes = 0
+
+    @property
+    def version(self) -> tuple[int, int]:
+        """Changes whenever the stored data may have changed: this store's committed writes and
+        SQLite's ``data_version`` (which moves when another connection to the file commits).
+        Readers cache what they built from the store under the version they read *before* building
+        it (the API caches its serialised responses this way)."""
+        with self._lock:
+            return self._writes, int(self._db.execute("PRAGMA data_version").fetchone()[0])
 
     def close(self) -> None:
         with self._lock:
@@ -143,6 +154,7 @@ class Store:
                 self._db.execute("ROLLBACK")
                 raise
             self._db.execute("COMMIT")
+            self._writes += 1
 
     # -- measurements ---------------------------------------------------------------------
     def create_measurement(self, request: dict[str, Any], schedule_id: str | None = None) -> Measurement:

@@ -11,15 +11,19 @@ import asyncio
 import contextlib
 import json
 import secrets
+import time
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, FastAPI, HTTPException, Query, Request, Response, status
+from fastapi.concurrency import run_in_threadpool
+from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, StreamingResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from pydantic import TypeAdapter
 
 from lrms import __version__
 from service.config import RigConfig
@@ -37,6 +41,42 @@ from service.store import FINAL_STATES, STATES, Measurement, NotFound, Schedule,
 
 RigInfo = Callable[[], dict[str, Any]]
 _bearer = HTTPBearer(auto_error=False)
+_MEASUREMENTS = TypeAdapter(list[MeasurementOut])
+_SCHEDULES = TypeAdapter(list[ScheduleOut])
+
+
+class _JsonBytes(Response):
+    media_type = "application/json"
+
+
+class ResponseCache:
+    """Serialised JSON bodies of the read endpoints, keyed by request and valid for one
+    :attr:`Store.version`: a polling HMI gets the bytes built for the previous poll until a
+    measurement or schedule changes, instead of an SQLite query, JSON decoding of stored results,
+    pydantic validation and serialisation per request (the event loop's main cost under load).
+
+    The version is read *before* the body is built, so a write racing with the build leaves the
+    entry stale-marked and the next request builds it again."""
+
+    def __init__(self, store: Store, max_entries: int = 512) -> None:
+        self.store = store
+        self.max_entries = max_entries
+        self._entries: dict[str, tuple[tuple[int, int], bytes]] = {}
+        self.hits = 0
+        self.misses = 0
+
+    def get(self, key: str, build: Callable[[], bytes]) -> bytes:
+        version = self.store.version
+        hit = self._entries.get(key)
+        if hit is not None and hit[0] == version:
+            self.hits += 1
+            return hit[1]
+        self.misses += 1
+        body = build()
+        if len(self._entries) >= self.max_entries:
+            self._entries.clear()
+        self._entries[key] = (version, body)
+        return body
 
 
 class Service:
@@ -60,6 +100,7 @@ class Service:
         self.scheduler = Scheduler(self.store, self.runner)
         self.rig_info = rig_info or (lambda: {})
         self.validate = validate
+        self.cache = ResponseCache(self.store)
         self._started = False
 
     def start(self) -> None:
@@ -194,15 +235,20 @@ def create_app(service: Service, manage_lifecycle: bool = True) -> FastAPI:
         return JSONResponse(status_code=400, content={"detail": str(exc)})
 
     # -- health and metrics ---------------------------------------------------------------
-    @app.get("/healthz", tags=["ops"])
-    async def healthz() -> dict[str, Any]:
-        counts = service.store.count_by_state()
-        return {
-            "status": "ok",
-            "version": __version__,
-            "running": service.runner.running_id,
-            "queued": counts["queued"],
-        }
+    @app.get("/healthz", tags=["ops"], response_class=_JsonBytes)
+    async def healthz() -> Response:
+        def build() -> bytes:
+            body = {
+                "status": "ok",
+                "version": __version__,
+                "running": service.runner.running_id,
+                "queued": service.store.count_by_state()["queued"],
+            }
+            return json.dumps(body).encode()
+
+        # the runner changes running_id next to a store write (start, finish), so the store's
+        # version covers it; the key holds it too for the instant between the two
+        return _JsonBytes(service.cache.get(f"healthz:{service.runner.running_id}", build))
 
     @app.get("/metrics", tags=["ops"], response_class=Response)
     def metrics() -> Response:
@@ -211,24 +257,35 @@ def create_app(service: Service, manage_lifecycle: bool = True) -> FastAPI:
     api = APIRouter(prefix="/api/v1")
 
     # -- rig ------------------------------------------------------------------------------
-    @api.get("/rig", tags=["rig"])
-    def rig() -> dict[str, Any]:
-        cfg = service.config
-        info: dict[str, Any] = {
-            "name": cfg.name,
-            "simulated": cfg.is_sim,
-            "scanner_url": cfg.scanner.url,
-            "motor_url": cfg.motor.url,
-            "kinematics": cfg.kinematics,
-            "noise": cfg.noise.model_dump(),
-            "sweep_defaults": cfg.sweep.model_dump(),
-            "fit_defaults": cfg.fit.model_dump(),
-            "sim": cfg.sim.model_dump() if cfg.sim is not None else None,
+    cfg = service.config
+    rig_static: dict[str, Any] = {  # the configuration does not change while the app runs
+        "name": cfg.name,
+        "simulated": cfg.is_sim,
+        "scanner_url": cfg.scanner.url,
+        "motor_url": cfg.motor.url,
+        "kinematics": cfg.kinematics,
+        "noise": cfg.noise.model_dump(mode="json"),
+        "sweep_defaults": cfg.sweep.model_dump(mode="json"),
+        "fit_defaults": cfg.fit.model_dump(mode="json"),
+        "sim": cfg.sim.model_dump(mode="json") if cfg.sim is not None else None,
+    }
+    rig_live: list[Any] = [-1.0, {}]  # (monotonic time, rig_info()) of the last device query
+
+    @api.get("/rig", tags=["rig"], response_class=_JsonBytes)
+    async def rig() -> Response:
+        """Configuration and device state. The device part is read at most every 0.25 s (on a
+        worker thread, as a driver may block); requests in between get that reading."""
+        now = time.monotonic()
+        if now - rig_live[0] >= 0.25:
+            rig_live[1] = await run_in_threadpool(service.rig_info)
+            rig_live[0] = time.monotonic()
+        info = {
+            **rig_static,
             "write_enabled": service.token() is not None,
             "busy": service.runner.running_id is not None,
+            **rig_live[1],
         }
-        info.update(service.rig_info())
-        return info
+        return _JsonBytes(json.dumps(jsonable_encoder(info)).encode())
 
     # -- measurements ---------------------------------------------------------------------
     @api.post(
@@ -254,14 +311,22 @@ def create_app(service: Service, manage_lifecycle: bool = True) -> FastAPI:
         state: Annotated[str | None, Query(description=f"one of {', '.join(STATES)}")] = None,
         limit: Annotated[int, Query(ge=1, le=1000)] = 100,
         offset: Annotated[int, Query(ge=0)] = 0,
-    ) -> list[MeasurementOut]:
+    ) -> Response:
         if state is not None and state not in STATES:
             raise HTTPException(422, f"unknown state {state!r}: expected one of {', '.join(STATES)}")
-        return [_measurement_out(m) for m in service.store.list_measurements(state, limit, offset)]
+
+        def build() -> bytes:
+            ms = service.store.list_measurements(state, limit, offset)
+            return _MEASUREMENTS.dump_json([_measurement_out(m) for m in ms])
+
+        return _JsonBytes(service.cache.get(f"list:{state}:{limit}:{offset}", build))
 
     @api.get("/measurements/{mid}", response_model=MeasurementOut, tags=["measurements"])
-    async def get_measurement(mid: str) -> MeasurementOut:
-        return _measurement_out(service.store.get(mid))
+    async def get_measurement(mid: str) -> Response:
+        def build() -> bytes:
+            return _measurement_out(service.store.get(mid)).model_dump_json().encode()
+
+        return _JsonBytes(service.cache.get(f"m:{mid}", build))
 
     @api.post("/measurements/{mid}/cancel", response_model=MeasurementOut, dependencies=write, tags=["measurements"])
     def cancel_measurement(mid: str) -> MeasurementOut:
@@ -347,8 +412,11 @@ def create_app(service: Service, manage_lifecycle: bool = True) -> FastAPI:
         return _schedule_out(service.scheduler.add(req))
 
     @api.get("/schedules", response_model=list[ScheduleOut], tags=["schedules"])
-    async def list_schedules() -> list[ScheduleOut]:
-        return [_schedule_out(s) for s in service.store.list_schedules()]
+    async def list_schedules() -> Response:
+        def build() -> bytes:
+            return _SCHEDULES.dump_json([_schedule_out(s) for s in service.store.list_schedules()])
+
+        return _JsonBytes(service.cache.get("schedules", build))
 
     @api.get("/schedules/{sid}", response_model=ScheduleOut, tags=["schedules"])
     async def get_schedule(sid: str) -> ScheduleOut:
