@@ -85,17 +85,22 @@ def test_enable_move_and_samples(motor: Cia402CanMotor) -> None:
     assert len(got) > 5 and got[-1] == pytest.approx(0.0, abs=2e-4)
 
 
-def test_at_least_100_samples_per_second_counted_on_their_stamps() -> None:
-    with open_device("motor", "sim://?node=7") as m:  # default SYNC rate
-        assert isinstance(m, Cia402CanMotor)
-        start = m.sample_count
-        wait_for(lambda: m.sample_count - start >= 260, timeout=10.0)
+def test_one_sample_per_sync_at_the_default_rate() -> None:
+    # The rate itself (200 SYNC/s by default) is a benchmark: bench/bench_servo.py measures it.
+    with open_device("motor", "sim://?node=7") as m:
+        assert isinstance(m, Cia402CanMotor) and m.options.sync_hz == 200.0
+        wait_for(lambda: m.sample_count >= 260, timeout=10.0)
+        before = m.sample_count
         a = m.sample_arrays_since()
-        window = a.t_host_s[(a.t_host_s >= a.t_host_s[-1] - 1.0)]
-        # count the samples stamped within the newest 1 s of stamps
-        assert len(window) >= 100
-        assert np.all(np.diff(a.t_host_s) > 0)
-        assert m.sync_count >= m.sample_count  # one sample per SYNC at most
+        after = m.sample_count
+        assert before <= len(a.t_host_s) <= after  # the buffer holds every sample so far
+        assert np.all(np.diff(a.t_host_s) > 0)  # strictly increasing stamps
+        # every stamp is the send time of one of our SYNCs, and they are consecutive SYNCs:
+        # none skipped, none answered twice, so samples == SYNCs from the first answered one
+        index = {t: i for i, t in enumerate(m.sync_history)}
+        ids = np.array([index[t] for t in a.t_host_s])
+        assert np.all(np.diff(ids) == 1)
+        assert m.sync_count >= ids[-1] + 1  # the SYNCs answered were all counted as sent
 
 
 def test_jog_stop_and_quick_stop(motor: Cia402CanMotor) -> None:
