@@ -814,8 +814,9 @@ def open_url(url: DeviceURL, **kw: Any) -> ScannerClient:
 
     Without ``cola`` the dialect follows the port (2112: B, otherwise A); without a port it
     follows the dialect (A: 2111, B: 2112). Keyword arguments override the URL
-    (``timeout_s``, ``reconnect``, ``backoff``, ``queue_size``, ``stall_timeout_s``) and
-    ``connect=False`` returns the client unconnected.
+    (``timeout_s``, ``reconnect``, ``backoff``, ``queue_size``, ``stall_timeout_s``), ``keep_raw``
+    (default True) is passed on to :class:`ScannerClient`, and ``connect=False`` returns the client
+    unconnected.
     """
     if url.scheme != "tcp":
         raise DeviceURLError(f"LMS100 client handles tcp:// URLs, not {url.scheme}:// ({url.raw!r})")
@@ -842,6 +843,7 @@ def open_url(url: DeviceURL, **kw: Any) -> ScannerClient:
         "backoff": Backoff(initial_s=initial, max_s=max(initial, maximum), max_attempts=retries or None),
         "queue_size": queue_size,
         "stall_timeout_s": stall,
+        "keep_raw": True,
     }
     unknown = set(kw) - set(options)
     if unknown:

@@ -520,6 +520,23 @@ def test_open_url_connects_with_dialect_and_options(make_server: ServerFactory, 
     assert c.device_state().measuring
 
 
+@pytest.mark.parametrize("keep_raw", [False, True])
+def test_open_device_passes_keep_raw_on(
+    make_server: ServerFactory, clients: list[ScannerClient], keep_raw: bool
+) -> None:
+    c = open_device("scanner", make_server("b").url, keep_raw=keep_raw, timeout_s=2.0)
+    clients.append(c)
+    assert isinstance(c, ScannerClient) and c.keep_raw is keep_raw and c.timeout_s == 2.0
+    c.start_streaming()
+    record = c.next_record()
+    c.stop_streaming()
+    if keep_raw:
+        assert record.raw is not None and record.raw.startswith(b"\x02\x02\x02\x02")
+    else:
+        assert record.raw is None
+    assert record.scan.ranges_m.shape == (1081,)
+
+
 @pytest.mark.parametrize(
     ("url", "port", "dialect"),
     [
