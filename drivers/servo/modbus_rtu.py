@@ -243,6 +243,11 @@ def _check_unit(unit: int, *, allow_broadcast: bool) -> None:
         raise ModbusError(f"unit address must be {lo}..{MAX_UNIT}, got {unit!r}")
 
 
+def _check_quantity(kind: str, count: int, maximum: int) -> None:
+    if not isinstance(count, int) or not 1 <= count <= maximum:
+        raise ModbusError(f"{kind} quantity must be 1..{maximum}, got {count!r}")
+
+
 def _check_span(address: int, count: int) -> None:
     if address + count > 0x10000:
         raise ModbusError(f"register range 0x{address:04X} + {count} runs past 0xFFFF")
@@ -256,8 +261,7 @@ class ReadHoldingRegisters:
 
     def __post_init__(self) -> None:
         _check_u16("address", self.address)
-        if not isinstance(self.count, int) or not 1 <= self.count <= MAX_READ_COUNT:
-            raise ModbusError(f"read quantity must be 1..{MAX_READ_COUNT}, got {self.count!r}")
+        _check_quantity("read", self.count, MAX_READ_COUNT)
         _check_span(self.address, self.count)
 
     def pdu(self) -> bytes:
@@ -265,7 +269,9 @@ class ReadHoldingRegisters:
 
 
 @dataclass(frozen=True)
-class WriteSingleRegister:
+class _SingleRegister:
+    """FC 06 layout: one register address and its value (the response echoes the request)."""
+
     address: int
     value: int
     function: int = FunctionCode.WRITE_SINGLE_REGISTER
@@ -279,6 +285,11 @@ class WriteSingleRegister:
 
 
 @dataclass(frozen=True)
+class WriteSingleRegister(_SingleRegister):
+    """FC 06 request: write ``value`` to the register at ``address``."""
+
+
+@dataclass(frozen=True)
 class WriteMultipleRegisters:
     address: int
     values: tuple[int, ...]
@@ -287,8 +298,7 @@ class WriteMultipleRegisters:
     def __post_init__(self) -> None:
         _check_u16("address", self.address)
         object.__setattr__(self, "values", tuple(self.values))
-        if not 1 <= len(self.values) <= MAX_WRITE_COUNT:
-            raise ModbusError(f"write quantity must be 1..{MAX_WRITE_COUNT}, got {len(self.values)}")
+        _check_quantity("write", len(self.values), MAX_WRITE_COUNT)
         for v in self.values:
             _check_u16("register value", v)
         _check_span(self.address, len(self.values))
@@ -316,17 +326,8 @@ class ReadHoldingRegistersResponse:
 
 
 @dataclass(frozen=True)
-class WriteSingleRegisterResponse:
-    address: int
-    value: int
-    function: int = FunctionCode.WRITE_SINGLE_REGISTER
-
-    def __post_init__(self) -> None:
-        _check_u16("address", self.address)
-        _check_u16("value", self.value)
-
-    def pdu(self) -> bytes:
-        return struct.pack(">BHH", self.function, self.address, self.value)
+class WriteSingleRegisterResponse(_SingleRegister):
+    """FC 06 response: the request echoed."""
 
 
 @dataclass(frozen=True)
@@ -337,8 +338,7 @@ class WriteMultipleRegistersResponse:
 
     def __post_init__(self) -> None:
         _check_u16("address", self.address)
-        if not isinstance(self.count, int) or not 1 <= self.count <= MAX_WRITE_COUNT:
-            raise ModbusError(f"write quantity must be 1..{MAX_WRITE_COUNT}, got {self.count!r}")
+        _check_quantity("write", self.count, MAX_WRITE_COUNT)
         _check_span(self.address, self.count)
 
     def pdu(self) -> bytes:
