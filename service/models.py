@@ -51,6 +51,11 @@ class FitOptions(_Strict):
         default=0, ge=0, le=2000, description="Monte Carlo refits for the 95 % interval (GUM-S1): 0 = off, else >= 40"
     )
     seed: int | None = Field(default=None, description="random seed of RANSAC and Monte Carlo")
+    degree_deg: float | None = Field(
+        default=None, gt=0.0, le=180.0, description="elbow: joint degree (deg); none = from the cloud"
+    )
+    ratio: float | None = Field(default=None, ge=0.5, le=20.0, description="elbow: fixed A/D ratio; none = free")
+    flange: bool = Field(default=False, description="elbow: the joint has flanges (fit their diameter Df)")
 
     @model_validator(mode="after")
     def _enough_replicas(self) -> FitOptions:
@@ -64,6 +69,13 @@ class MeasurementRequest(_Strict):
     sweep: SweepSpec = Field(default_factory=SweepSpec)
     roi: RoiSpec | None = None
     options: FitOptions = Field(default_factory=FitOptions)
+
+    @model_validator(mode="after")
+    def _options_fit_target(self) -> MeasurementRequest:
+        o = self.options
+        if self.target != "elbow" and (o.degree_deg is not None or o.ratio is not None or o.flange):
+            raise ValueError("options degree_deg, ratio and flange apply to target 'elbow' only")
+        return self
 
 
 class ResolvedSweep(BaseModel):
