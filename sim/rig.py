@@ -38,37 +38,6 @@ FloatArray = NDArray[np.float64]
 _channels = itertools.count(1)
 
 
-#: The elbow scene: a 90 deg pipe elbow (D = 250 mm, bend radius A = 350 mm) 1.8 m in front of the
-#: rig, its bend plane facing the rig, within beta -6 .. 72 deg; a floor.
-ELBOW_CENTER = (0.3, 1.8, 0.05)
-ELBOW_AXIS = (0.0, -1.0, 0.0)
-ELBOW_BEND_RADIUS = 0.35
-ELBOW_DIAMETER = 0.25
-
-
-def elbow_scene() -> Scene:
-    from sim.scene import Plane, TorusSection
-
-    scene = Scene("elbow")
-    scene.add(
-        TorusSection(ELBOW_CENTER, ELBOW_AXIS, ELBOW_BEND_RADIUS, ELBOW_DIAMETER / 2, np.pi / 2, (1.0, 0.0, 0.0)),
-        remission=0.5,
-        name="elbow",
-    )
-    scene.add(Plane((0.0, 0.0, -0.85), (0.0, 0.0, 1.0)), remission=0.2, name="floor")
-    return scene
-
-
-def _register_scenes() -> None:
-    from sim.scene import list_scenes, register_scene
-
-    if "elbow" not in list_scenes():
-        register_scene("elbow", elbow_scene, "a 90 deg pipe elbow, D 250 mm, A 350 mm, 1.8 m ahead; floor")
-
-
-_register_scenes()
-
-
 class PositionHistory:
     """Timestamped shaft angles of a :class:`SimDrive` (host monotonic s, output-shaft rad)."""
 

@@ -3,19 +3,17 @@
 Coordinates are the world frame; with the default :class:`lrms.kinematics.RigCalibration` that is
 the rig frame (y on the motor shaft, z up, the LMS1xx looking along +y at device angle 90 deg).
 
-Other modules add scenes with :func:`register_scene`; ``sim.scene.joints`` (pipe elbows, when
-present) is imported on first use of the registry so that its scenes are listed too.
+Other modules may add scenes with :func:`register_scene`.
 """
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Callable
 
 import numpy as np
 
 from sim.scene.scene import Scene
-from sim.scene.shapes import Box, Cylinder, Plane, SceneError
+from sim.scene.shapes import Box, Cylinder, Plane, SceneError, TorusSection
 
 #: Seed 003's part: a 137.5 mm diameter cylinder (CMM value), axis (0, 0, 1) through the centre
 #: of its bottom circle C0 = (0.28, 2.53, -0.1) m, standing on the table top at z = -0.1 m.
@@ -26,10 +24,17 @@ SEED003_HEIGHT = 0.8
 #: Floor level of the seed003 room (table height 0.75 m).
 SEED003_FLOOR_Z = -0.85
 
+#: The ``elbow`` scene: a 90 deg pipe elbow (D = 250 mm, bend radius A = 350 mm) about 1.8 m in
+#: front of the rig, its bend plane facing the rig; a floor.
+ELBOW_CENTER = (0.3, 1.8, 0.05)
+ELBOW_AXIS = (0.0, -1.0, 0.0)
+ELBOW_START = (1.0, 0.0, 0.0)
+ELBOW_BEND_RADIUS = 0.35
+ELBOW_DIAMETER = 0.25
+ELBOW_DEGREE = float(np.pi / 2)
+
 SceneFactory = Callable[[], Scene]
 _SCENES: dict[str, tuple[SceneFactory, str]] = {}
-_PLUGINS = ("sim.scene.joints",)
-_plugins_loaded = False
 
 
 def register_scene(name: str, factory: SceneFactory, description: str = "") -> None:
@@ -41,27 +46,12 @@ def register_scene(name: str, factory: SceneFactory, description: str = "") -> N
     _SCENES[name] = (factory, description)
 
 
-def _load_plugins() -> None:
-    global _plugins_loaded
-    if _plugins_loaded:
-        return
-    _plugins_loaded = True
-    for module_name in _PLUGINS:
-        try:
-            importlib.import_module(module_name)
-        except ModuleNotFoundError as exc:
-            if exc.name != module_name:
-                raise
-
-
 def list_scenes() -> list[str]:
     """Names of all registered scenes, sorted."""
-    _load_plugins()
     return sorted(_SCENES)
 
 
 def describe_scene(name: str) -> str:
-    _load_plugins()
     if name not in _SCENES:
         raise SceneError(f"unknown scene {name!r} (known: {', '.join(sorted(_SCENES))})")
     return _SCENES[name][1]
@@ -69,7 +59,6 @@ def describe_scene(name: str) -> str:
 
 def get_scene(name: str) -> Scene:
     """A new instance of the named scene."""
-    _load_plugins()
     entry = _SCENES.get(name)
     if entry is None:
         raise SceneError(f"unknown scene {name!r} (known: {', '.join(sorted(_SCENES))})")
@@ -138,7 +127,20 @@ def wall() -> Scene:
     return scene
 
 
+def elbow() -> Scene:
+    """A 90 deg pipe elbow (``ELBOW_*``) and a floor."""
+    scene = Scene("elbow")
+    scene.add(
+        TorusSection(ELBOW_CENTER, ELBOW_AXIS, ELBOW_BEND_RADIUS, ELBOW_DIAMETER / 2, ELBOW_DEGREE, ELBOW_START),
+        remission=0.5,
+        name="elbow",
+    )
+    scene.add(Plane((0.0, 0.0, SEED003_FLOOR_Z), (0.0, 0.0, 1.0)), remission=0.2, name="floor")
+    return scene
+
+
 register_scene("seed003", seed003, "seed 003: 137.5 mm cylinder on a table 2.53 m along +y, floor, wall, clutter")
 register_scene("seed003-bare", seed003_bare, "seed 003's cylinder and table only")
 register_scene("empty", empty, "nothing: every beam misses")
 register_scene("wall", wall, "an infinite wall at y = 3 m")
+register_scene("elbow", elbow, "a 90 deg pipe elbow, D 250 mm, A 350 mm, 1.8 m ahead; floor")
