@@ -84,6 +84,17 @@ class MotorTrack:
         self.position.append(float(position))
         self.velocity.append(float(velocity))
 
+    def extend(self, t_ns: ArrayLike, position: ArrayLike, velocity: ArrayLike) -> None:
+        """A batch of samples (equal-length arrays)."""
+        t = np.asarray(t_ns, dtype=np.int64).reshape(-1)
+        p = np.asarray(position, dtype=np.float64).reshape(-1)
+        v = np.asarray(velocity, dtype=np.float64).reshape(-1)
+        if not t.shape == p.shape == v.shape:
+            raise ValueError(f"motor sample arrays differ in length: {t.shape}, {p.shape}, {v.shape}")
+        self.t_ns.extend(t.tolist())
+        self.position.extend(p.tolist())
+        self.velocity.extend(v.tolist())
+
     def __len__(self) -> int:
         return len(self.t_ns)
 
@@ -324,6 +335,15 @@ class SweepRecorder:
         if self.log is not None:
             self.log.log_motor(t_ns, position, velocity)
 
+    def add_motor_batch(self, t_ns: ArrayLike, position: ArrayLike, velocity: ArrayLike) -> None:
+        """Many motor samples at once (host ns, rad, rad/s); each is logged as its own JointStates."""
+        n = len(self.motor)
+        self.motor.extend(t_ns, position, velocity)
+        if self.log is not None:
+            log_motor = self.log.log_motor
+            for t, p, v in zip(self.motor.t_ns[n:], self.motor.position[n:], self.motor.velocity[n:], strict=True):
+                log_motor(t, p, v)
+
     def scans_between(self, t_start_ns: int, t_end_ns: int | None) -> list[ScanRecord]:
         """Scans whose first beam falls at or after ``t_start_ns`` (and, given, at or before ``t_end_ns``)."""
         if not self.scans:
@@ -423,7 +443,8 @@ def run_sweep(
     """Run one sweep: approach, then sweep (constant speed or step-and-scan), recording all along.
 
     ``read_scan(timeout)`` returns ``(scan, host monotonic s, raw telegram)`` or raises the
-    driver's timeout; ``clock_ns(t_monotonic)`` turns host seconds into the log's integer ns.
+    driver's timeout; ``clock_ns(t_monotonic)`` turns host seconds into the log's integer ns (``round(t * 1e9)``
+    plus a fixed offset: motor sample batches are converted with ``clock_ns(0.0)`` as that offset).
     The motor runs on its own thread; this loop reads scans, watches for faults, cancellation
     and scanner silence. On *any* error the motor is stopped (quick stop) before the error is
     raised; the caller records the reason.
@@ -444,8 +465,8 @@ def run_sweep(
         arr = motor.sample_arrays_since(sample_cursor[0])
         if len(arr.t_host_s):
             sample_cursor[0] = float(arr.t_host_s[-1])
-            for t, p, v in zip(arr.t_host_s, arr.position_rad, arr.velocity_rad_s, strict=True):
-                recorder.add_motor(clock_ns(float(t)), float(p), float(v))
+            t_ns = np.rint(np.asarray(arr.t_host_s, dtype=np.float64) * 1e9).astype(np.int64) + clock_ns(0.0)
+            recorder.add_motor_batch(t_ns, arr.position_rad, arr.velocity_rad_s)
 
     def motion() -> None:
         pre = plan.start - plan.direction * (plan.run_up if plan.mode == "constant" else 0.0)
