@@ -85,29 +85,37 @@ def replay(path: str | Path) -> dict[str, Any]:
         "max_abs_diff": None,
     }
     if stored is not None and stored.get("state") == "done":
-        diff = _max_diff(stored["result"], result)
+        diff = max_abs_diff(stored["result"], result)
         out["max_abs_diff"] = diff
         out["reproduced"] = diff is not None and diff <= 1e-9
     return out
 
 
-def _max_diff(a: Any, b: Any) -> float | None:
-    """Largest absolute difference over the numbers both results share (None: structure differs)."""
+#: Result fields a replay cannot reproduce (wall time, the live client's counters, the id).
+NOT_REPLAYED = frozenset({"duration_s", "scanner_stats", "measurement_id"})
+
+
+def max_abs_diff(a: Any, b: Any) -> float | None:
+    """Largest absolute difference between two results' numbers; ``None`` when their structure
+    differs (a key present in one only, apart from :data:`NOT_REPLAYED`; lists of other lengths;
+    values of other kinds), so a replay that loses or adds a field is not "reproduced"."""
     if isinstance(a, dict) and isinstance(b, dict):
-        keys = set(a) & set(b) - {"duration_s", "scanner_stats", "measurement_id"}
-        diffs = [_max_diff(a[k], b[k]) for k in keys]
+        keys_a, keys_b = set(a) - NOT_REPLAYED, set(b) - NOT_REPLAYED
+        if keys_a != keys_b:
+            return None
+        diffs = [max_abs_diff(a[k], b[k]) for k in keys_a]
         if any(d is None for d in diffs):
             return None
         return max((d for d in diffs if d is not None), default=0.0)
     if isinstance(a, list) and isinstance(b, list):
         if len(a) != len(b):
             return None
-        diffs = [_max_diff(x, y) for x, y in zip(a, b, strict=True)]
+        diffs = [max_abs_diff(x, y) for x, y in zip(a, b, strict=True)]
         if any(d is None for d in diffs):
             return None
         return max((d for d in diffs if d is not None), default=0.0)
     if isinstance(a, bool) or isinstance(b, bool):
-        return 0.0 if a == b else None
+        return 0.0 if type(a) is type(b) and a == b else None
     if isinstance(a, int | float) and isinstance(b, int | float):
         return abs(float(a) - float(b))
     return 0.0 if a == b else None
