@@ -12,7 +12,7 @@ from __future__ import annotations
 import struct
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 from drivers.lms100.errors import TelegramError
 
@@ -225,74 +225,34 @@ class AsciiReader(_Reader):
             raise TelegramError(f"{what}: unexpected trailing parameters {self.buf[self.pos : self.pos + 40]!r}")
 
 
-class BinWriter:
+def _pack_real(value: float) -> bytes:
+    """The 4 big-endian bytes of an IEEE-754 single (both dialects carry this bit pattern)."""
+    try:
+        return _REAL.pack(value)
+    except (struct.error, OverflowError, TypeError) as exc:
+        raise TelegramError(f"bad REAL {value!r}: {exc}") from None
+
+
+class _Writer(ABC):
+    """Collects one telegram's parameters; the dialects differ in how a value is written and joined."""
+
     __slots__ = ("parts",)
+    SEPARATOR: ClassVar[bytes]
 
     def __init__(self) -> None:
         self.parts: list[bytes] = []
 
-    def num(self, value: int, size: int, signed: bool = False, style: Style = "X") -> None:
-        self.parts.append(_INT_FMT[(size, signed)].pack(check_int(value, size, signed)))
+    @abstractmethod
+    def num(self, value: int, size: int, signed: bool = False, style: Style = "X") -> None: ...
 
-    def real(self, value: float) -> None:
-        try:
-            self.parts.append(_REAL.pack(value))
-        except (struct.error, OverflowError, TypeError) as exc:
-            raise TelegramError(f"bad REAL {value!r}: {exc}") from None
+    @abstractmethod
+    def real(self, value: float) -> None: ...
 
-    def raw(self, data: bytes) -> None:
-        self.parts.append(data)
-
-    def string(self, value: str) -> None:
-        data = encode_text(value)
-        if len(data) > 0xFFFF:
-            raise TelegramError("string longer than 65535 characters")
-        self.parts.append(_U16.pack(len(data)) + data)
-
-    def put(self, f: Field, value: Any) -> None:
-        if f.kind == "int":
-            self.num(value, f.size, f.signed)
-        elif f.kind == "bool":
-            self.num(int(bool(value)), 1)
-        elif f.kind == "real":
-            self.real(value)
-        elif f.kind == "str":
-            self.string(value)
-        else:
-            a, b = value
-            self.num(a, 1)
-            self.num(b, 1)
-
-    def getvalue(self) -> bytes:
-        return b"".join(self.parts)
-
-
-class AsciiWriter:
-    __slots__ = ("parts",)
-
-    def __init__(self) -> None:
-        self.parts: list[bytes] = []
-
-    def num(self, value: int, size: int, signed: bool = False, style: Style = "X") -> None:
-        self.parts.append(format_ascii_int(value, size, signed, style))
-
-    def real(self, value: float) -> None:
-        try:
-            bits = _U32.unpack(_REAL.pack(value))[0]
-        except (struct.error, OverflowError, TypeError) as exc:
-            raise TelegramError(f"bad REAL {value!r}: {exc}") from None
-        self.parts.append(b"%08X" % bits)
+    @abstractmethod
+    def string(self, value: str) -> None: ...
 
     def raw(self, data: bytes) -> None:
         self.parts.append(data)
-
-    def string(self, value: str) -> None:
-        data = encode_text(value, ascii_frame=True)
-        if len(data) > 0xFFFF:
-            raise TelegramError("string longer than 65535 characters")
-        self.parts.append(b"%X" % len(data))
-        if data:
-            self.parts.append(data)
 
     def put(self, f: Field, value: Any) -> None:
         if f.kind == "int":
@@ -309,7 +269,47 @@ class AsciiWriter:
             self.num(b, 1, False, f.style)
 
     def getvalue(self) -> bytes:
-        return b" ".join(self.parts)
+        return self.SEPARATOR.join(self.parts)
+
+
+class BinWriter(_Writer):
+    """CoLa B: packed big-endian values (``style`` is a CoLa A matter and ignored)."""
+
+    __slots__ = ()
+    SEPARATOR = b""
+
+    def num(self, value: int, size: int, signed: bool = False, style: Style = "X") -> None:
+        self.parts.append(_INT_FMT[(size, signed)].pack(check_int(value, size, signed)))
+
+    def real(self, value: float) -> None:
+        self.parts.append(_pack_real(value))
+
+    def string(self, value: str) -> None:
+        data = encode_text(value)
+        if len(data) > 0xFFFF:
+            raise TelegramError("string longer than 65535 characters")
+        self.parts.append(_U16.pack(len(data)) + data)
+
+
+class AsciiWriter(_Writer):
+    """CoLa A: space-separated tokens."""
+
+    __slots__ = ()
+    SEPARATOR = b" "
+
+    def num(self, value: int, size: int, signed: bool = False, style: Style = "X") -> None:
+        self.parts.append(format_ascii_int(value, size, signed, style))
+
+    def real(self, value: float) -> None:
+        self.parts.append(b"%08X" % _U32.unpack(_pack_real(value))[0])
+
+    def string(self, value: str) -> None:
+        data = encode_text(value, ascii_frame=True)
+        if len(data) > 0xFFFF:
+            raise TelegramError("string longer than 65535 characters")
+        self.parts.append(b"%X" % len(data))
+        if data:
+            self.parts.append(data)
 
 
 def encode_text(value: str, ascii_frame: bool = False) -> bytes:

@@ -59,6 +59,7 @@ from drivers.lms100 import (
     is_reply_to,
     reply_kind,
 )
+from drivers.lms100._values import REAL, AsciiWriter, BinWriter
 from drivers.lms100.framing import Framer
 
 CLIENT_HASH = 0xF4724744
@@ -323,6 +324,19 @@ def test_encoding_out_of_range_values_is_a_telegram_error() -> None:
         SerialNumber("a\x03b").encode(Dialect.A)
     with pytest.raises(TelegramError, match="unknown CoLa command type"):
         RawTelegram("sXX", "Foo").encode(Dialect.A)
+
+
+@pytest.mark.parametrize(("writer", "one_and_a_half"), [(BinWriter, b"\x3f\xc0\x00\x00"), (AsciiWriter, b"3FC00000")])
+def test_reals_are_the_ieee_single_bit_pattern_and_overflow_is_a_telegram_error(
+    writer: type[BinWriter | AsciiWriter], one_and_a_half: bytes
+) -> None:
+    w = writer()
+    w.put(REAL, 1.5)
+    assert w.getvalue() == one_and_a_half
+    with pytest.raises(TelegramError, match="bad REAL 1e"):
+        writer().put(REAL, 1e300)
+    with pytest.raises(TelegramError, match="bad REAL"):
+        writer().put(REAL, "1.5")
 
 
 def test_reply_matching() -> None:
