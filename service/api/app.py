@@ -433,8 +433,10 @@ def create_app(service: Service, manage_lifecycle: bool = True) -> FastAPI:
 
 
 class _CountRequests:
-    """Pure ASGI middleware counting requests by route template and status (cheaper than
-    Starlette's ``BaseHTTPMiddleware``, which wraps every response in extra tasks)."""
+    """Pure ASGI middleware counting requests by route template and status, timing them into
+    ``lrms_http_request_seconds`` and a ``Server-Timing: app;dur=<ms>`` response header (the time
+    in the app, so a client can tell it from the time on the wire and in its own queue). Cheaper
+    than Starlette's ``BaseHTTPMiddleware``, which wraps every response in extra tasks."""
 
     def __init__(self, app: Any, metrics: Metrics) -> None:
         self.app = app
@@ -445,10 +447,16 @@ class _CountRequests:
             await self.app(scope, receive, send)
             return
         status_code = [500]
+        t0 = time.perf_counter()
 
         async def send_wrapper(message: dict[str, Any]) -> None:
             if message["type"] == "http.response.start":
                 status_code[0] = int(message["status"])
+                dt = time.perf_counter() - t0
+                self.metrics.http_seconds.observe(dt)
+                headers = list(message.get("headers", ()))
+                headers.append((b"server-timing", f"app;dur={dt * 1e3:.3f}".encode()))
+                message = {**message, "headers": headers}
             await send(message)
 
         try:
