@@ -277,3 +277,50 @@ def test_measurement_function_failure_is_recorded_with_its_reason(tmp_path: Path
             mid = client.post("/api/v1/measurements", json=CYL, headers=AUTH).json()["id"]
             body = _wait_state(client, mid, {"failed"})
             assert body["error"].startswith(needle)
+
+
+def test_polled_reads_follow_every_change(served: tuple[httpx.Client, GatedMeasure, Service]) -> None:
+    """The read endpoints answer repeated polls from a cache; every change shows in the next poll,
+    including a write by another connection to the same database."""
+    client, measure, svc = served
+    assert client.get("/api/v1/measurements").json() == []
+    mid = client.post("/api/v1/measurements", headers=AUTH, json=CYL).json()["id"]
+    polls = [client.get(f"/api/v1/measurements/{mid}").json() for _ in range(3)]
+    assert [p["id"] for p in polls] == [mid] * 3
+    listed = client.get("/api/v1/measurements?limit=20").json()
+    assert [m["id"] for m in listed] == [mid]
+    again = client.get("/api/v1/measurements?limit=20")
+    assert again.json() == client.get("/api/v1/measurements?limit=20").json()
+    assert svc.cache.hits > 0
+    _wait_state(client, mid, {"running"})
+    end = time.monotonic() + 20.0  # the progress the measurement reported reaches the poll
+    while client.get(f"/api/v1/measurements/{mid}").json()["message"] != "sweeping":
+        assert time.monotonic() < end, "progress never showed"
+        time.sleep(0.02)
+    assert client.get(f"/api/v1/measurements/{mid}").json()["progress"] == pytest.approx(0.1)
+    assert client.get("/healthz").json()["running"] == mid
+    measure.gate.release()
+    done = _wait_state(client, mid, {"done"})
+    assert done["result"]["order"] == 1 and done["has_raw"] and done["has_cloud"]
+    assert client.get("/api/v1/measurements?limit=20").json()[0]["state"] == "done"
+    assert client.get("/api/v1/measurements?state=done").json()[0]["id"] == mid
+    assert client.get("/healthz").json()["running"] is None
+    # another connection (another process, say) adds a schedule: the next poll has it
+    assert client.get("/api/v1/schedules").json() == []
+    other = Store(svc.config.storage.db_path)
+    try:
+        sid = other.add_schedule(CYL, interval_s=3600.0, next_run=time.time() + 3600.0).id
+    finally:
+        other.close()
+    assert [s["id"] for s in client.get("/api/v1/schedules").json()] == [sid]
+
+
+def test_responses_carry_the_app_time(served: tuple[httpx.Client, GatedMeasure, Service]) -> None:
+    client, _, _ = served
+    r = client.get("/api/v1/measurements")
+    name, _, dur = r.headers["server-timing"].partition(";dur=")
+    assert name == "app" and float(dur) >= 0.0
+    spec = client.get("/openapi.json").json()  # the cached bytes keep their documented schema
+    schema = spec["paths"]["/api/v1/measurements/{mid}"]["get"]["responses"]["200"]["content"]["application/json"]
+    assert schema["schema"]["$ref"].endswith("/MeasurementOut")
+    assert "lrms_http_request_seconds_bucket" in client.get("/metrics").text

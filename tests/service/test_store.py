@@ -79,3 +79,22 @@ def test_schedules(tmp_path: Path) -> None:
     assert [sc.id for sc in s2.list_schedules()] == [x.id]
     with pytest.raises(NotFound):
         s2.delete_schedule(y.id)
+
+
+def test_version_moves_with_every_write_from_any_connection(tmp_path: Path) -> None:
+    db = tmp_path / "r.db"
+    store, other = Store(db), Store(db)
+    try:
+        v0 = store.version
+        m = store.create_measurement({"target": "cylinder"})
+        v1 = store.version
+        assert v1 != v0
+        store.get(m.id)
+        store.list_measurements()
+        assert store.version == v1  # reads do not move it
+        other.cancel(m.id)  # a write by another connection to the file
+        v2 = store.version
+        assert v2 != v1 and store.get(m.id).state == "cancelled"
+    finally:
+        store.close()
+        other.close()
