@@ -214,7 +214,7 @@ def test_reconfiguration_changes_rate_and_beams_and_counters_continue(
     fast_server: ScannerServer, connect: Connect
 ) -> None:
     link = connect(fast_server.address)
-    link.request(SubscribeScanData(True))
+    assert link.request(SubscribeScanData(True)) == SubscribeScanDataReply(True)
     before = link.scans(3)
     login(link)
     reply = link.request(SetScanConfig.from_hz_deg(50, 0.5))
@@ -243,7 +243,7 @@ def test_reconfiguration_changes_rate_and_beams_and_counters_continue(
 def test_login_pauses_scans_until_run_and_stop_start_measurement(fast_server: ScannerServer, connect: Connect) -> None:
     link = connect(fast_server.address)
     login(link)
-    link.request(SubscribeScanData(True))
+    assert link.request(SubscribeScanData(True)) == SubscribeScanDataReply(True)
     # Configuration mode: the fast device would stream at once, yet nothing arrives before this reply.
     assert isinstance(link.request(ReadDeviceState()), DeviceState)
     assert link.events == []
@@ -254,7 +254,7 @@ def test_login_pauses_scans_until_run_and_stop_start_measurement(fast_server: Sc
     state = link.request(ReadDeviceState())
     assert isinstance(state, DeviceState) and state.status == 7
     assert link.events == []
-    link.request(Run())
+    assert link.request(Run()) == RunReply(True)
     scans = link.scans(10)
     assert np.all(np.diff([s.scan_counter for s in scans]) == 1)
     assert scans[0].device_status == (1, 0)  # measuring restarted: start-up status again
@@ -276,14 +276,14 @@ def test_two_clients_receive_the_same_scans(fast_server: ScannerServer, connect:
 
 def test_drop_clients_and_reconnect(fast_server: ScannerServer, connect: Connect) -> None:
     link = connect(fast_server.address)
-    link.request(SubscribeScanData(True))
+    assert link.request(SubscribeScanData(True)) == SubscribeScanDataReply(True)
     last = link.scans(5)[-1]
     assert fast_server.drop_clients() == 1
     with pytest.raises((ConnectionError, OSError)):
         for _ in range(10_000):
             link.scans(1)
     again = connect(fast_server.address)
-    again.request(SubscribeScanData(True))
+    assert again.request(SubscribeScanData(True)) == SubscribeScanDataReply(True)
     assert again.scans(1)[0].scan_counter > last.scan_counter
     assert fast_server.connections == 2
 
@@ -307,7 +307,7 @@ def test_output_range_limits_the_beams(fast_server: ScannerServer, connect: Conn
     link = connect(fast_server.address)
     login(link)
     assert link.request(WriteOutputRange(1, 2500, 0, 1800000)) == WriteOutputRangeReply()
-    link.request(Run())
+    assert link.request(Run()) == RunReply(True)
     polled = link.request(PollScan())
     assert isinstance(polled, ScanDataReply)
     assert polled.scan.start_angle_deg == 0.0 and polled.scan.ranges_m.shape == (721,)
@@ -348,7 +348,7 @@ def test_plane_turning_during_the_scan_uses_each_beams_time(connect: Connect) ->
     device = SimulatedLMS100(floor, motor_angle_at=motor, sensor=SensorModel.noiseless(), realtime=False)
     with ScannerServer(device) as srv:
         link = connect(srv.address)
-        link.request(SubscribeScanData(True))
+        assert link.request(SubscribeScanData(True)) == SubscribeScanDataReply(True)
         scan = link.scans(4)[3]
     t0 = scan.time_since_startup_us / 1e6
     times = t0 + np.arange(1081) * (0.04 * 0.25 / 360)
@@ -369,7 +369,7 @@ def test_realtime_stream_paces_by_the_device_clock(connect: Connect) -> None:
     device = SimulatedLMS100("wall", time_scale=4.0)  # real-time mode, clock 4x faster than the host
     with ScannerServer(device, dialect="a") as srv:
         link = connect(srv.address, "a")
-        link.request(SubscribeScanData(True))
+        assert link.request(SubscribeScanData(True)) == SubscribeScanDataReply(True)
         scans = link.scans(6)
     steps = np.diff([s.time_since_startup_us for s in scans])
     counters = np.diff([s.scan_counter for s in scans])
