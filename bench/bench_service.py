@@ -112,12 +112,29 @@ def _server_ms(r: Any) -> float:
 
 
 async def _load(
-    base: str, paths: list[str], clients: int, duration: float, interval: float = 0.0, server: list[float] | None = None
+    base: str,
+    paths: list[str],
+    clients: int,
+    duration: float,
+    interval: float = 0.0,
+    server: list[float] | None = None,
+    wait_go: bool = False,
 ) -> tuple[list[float], int, int, float]:
     """``clients`` concurrent clients for ``duration`` s; returns latencies, errors, requests and the
     time the clients took to open their connections (warm-up, not counted in the latencies).
-    ``server`` (if given) receives the app's own time of each response (ms)."""
+    ``server`` (if given) receives the app's own time of each response (ms). With ``wait_go``
+    (a load process), print ``ready`` once imported and wait for ``go`` on stdin, so that no load
+    process is still starting up (importing, a CPU burst) while the others measure."""
     import httpx
+
+    if wait_go:
+        print("ready", flush=True)
+        if (await asyncio.to_thread(sys.stdin.readline)).strip() != "go":
+            raise RuntimeError("load worker: expected 'go' on stdin")
+        # the load generator's own garbage collections are not the server's latency
+        gc.collect()
+        gc.freeze()
+        gc.disable()
 
     latencies: list[float] = []
     errors = 0
@@ -179,12 +196,21 @@ def _load_processes(
                 json.dumps({"base": base, "paths": paths, "clients": n, "duration": duration, "interval": interval}),
             ],
             cwd=REPO,
+            stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             text=True,
         )
         for n in per
         if n > 0
     ]
+    for p in procs:  # all started up before any measures
+        assert p.stdout is not None
+        if p.stdout.readline().strip() != "ready":
+            raise RuntimeError("a load process did not start")
+    for p in procs:
+        assert p.stdin is not None
+        p.stdin.write("go\n")
+        p.stdin.flush()
     lat: list[float] = []
     errors = requests = 0
     warm = 0.0
@@ -299,6 +325,8 @@ def bench_rest(clients: int, duration: float, interval: float, args_processes: i
         "measurement_error": m.get("error"),
         "scans_received": res.get("sweep", {}).get("scans_received"),
         "scans_dropped": (res.get("sweep", {}).get("scans_missing", 0) or 0) + (stats.get("queue_drops", 0) or 0),
+        "scans_missing": res.get("sweep", {}).get("scans_missing", 0) or 0,
+        "queue_drops": stats.get("queue_drops", 0) or 0,
         "diameter_mm": (res.get("diameter_m") or float("nan")) * 1e3,
     }
 
@@ -322,7 +350,7 @@ def main(argv: list[str] | None = None) -> int:
         w = json.loads(args.load_worker)
         srv: list[float] = []
         lat, err, n, warm = asyncio.run(
-            _load(w["base"], w["paths"], w["clients"], w["duration"], w["interval"], server=srv)
+            _load(w["base"], w["paths"], w["clients"], w["duration"], w["interval"], server=srv, wait_go=True)
         )
         print(json.dumps({"latencies": lat, "errors": err, "requests": n, "warmup_s": warm, "server_ms": srv}))
         return 0
@@ -354,7 +382,9 @@ def main(argv: list[str] | None = None) -> int:
         )
         print(
             f"sweep under load: {r['measurement_state']} {r['measurement_error'] or ''} "
-            f"scans received {r['scans_received']}, dropped {r['scans_dropped']} (goal 0), "
+            f"scans received {r['scans_received']}, dropped {r['scans_dropped']} (goal 0: "
+            f"{r['scans_missing']} scan-counter gaps, i.e. never sent or lost on the way; "
+            f"{r['queue_drops']} dropped by the client's queue), "
             f"diameter {r['diameter_mm']:.2f} mm"
         )
     return 0
