@@ -263,7 +263,7 @@ def bench_rest(clients: int, duration: float, interval: float, args_processes: i
                     pass
                 if time.monotonic() > end or proc.poll() is not None:
                     proc.kill()
-                    _, err = proc.communicate(10)
+                    _, err = proc.communicate(timeout=10)
                     raise RuntimeError(f"the service did not start: {err[-2000:]}")
                 time.sleep(0.2)
             paths = ["/healthz", "/api/v1/rig", "/api/v1/measurements?limit=20"]
