@@ -17,6 +17,7 @@ The pure functions here are used both live (:func:`run_sweep`) and offline by
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import threading
 import time
@@ -32,6 +33,7 @@ from service.errors import ServiceError
 from service.timesync import ClockSync
 
 FloatArray = NDArray[np.float64]
+log = logging.getLogger(__name__)
 IntArray = NDArray[np.int64]
 
 
@@ -426,6 +428,27 @@ class SweepOutcome:
     duration_s: float
 
 
+def stop_motor(motor: Any) -> str | None:
+    """Quick-stop the motor after a failed or cancelled sweep; if that fails, disable it.
+
+    Returns ``None`` when the quick stop was accepted, else what went wrong (both errors when
+    the disable failed too), which the caller puts into the ``sweep_aborted`` event and the
+    failure reason: a motor that may still be turning is never reported as stopped.
+    """
+    try:
+        motor.quick_stop()
+        return None
+    except Exception as exc:  # any driver or transport error: the stop is not confirmed
+        quick = f"{type(exc).__name__}: {exc}"
+        log.error("quick stop after the aborted sweep failed: %s; disabling the motor", quick)
+    try:
+        motor.disable()
+    except Exception as exc:
+        log.error("disabling the motor failed too: %s: %s", type(exc).__name__, exc)
+        return f"motor stop failed: quick stop: {quick}; disable: {type(exc).__name__}: {exc}"
+    return f"motor quick stop failed ({quick}); the motor was disabled instead"
+
+
 def run_sweep(
     scanner: Any,
     motor: Any,
@@ -560,13 +583,23 @@ def run_sweep(
         pull_motor()
     except BaseException as exc:
         abort.set()
-        with contextlib.suppress(Exception):
-            motor.quick_stop()
+        stop_error = stop_motor(motor)
         mover.join(5.0)
         with contextlib.suppress(Exception):
             pull_motor()
-        emit("sweep_aborted", {"reason": str(exc) or type(exc).__name__, "phase": phase[0]})
-        raise
+        reason = str(exc) or type(exc).__name__
+        event: dict[str, Any] = {"reason": reason, "phase": phase[0]}
+        if stop_error is not None:
+            event["motor_stop_error"] = stop_error
+        emit("sweep_aborted", event)
+        if stop_error is None:
+            raise
+        message = f"{reason}; {stop_error}"
+        from service.jobs import Cancelled
+
+        if isinstance(exc, Cancelled):
+            raise Cancelled(message) from exc
+        raise SweepError(message) from exc
     finally:
         with contextlib.suppress(Exception):
             scanner.stop_streaming()

@@ -36,6 +36,8 @@ from sim.scene import Scene, SensorModel
 
 FloatArray = NDArray[np.float64]
 _channels = itertools.count(1)
+#: The control channel's commands (one per line on the stdin of ``python -m sim.rig``).
+COMMANDS = ("drop_scanner", "kill_scanner", "motor_fault [KIND]", "drive_state", "describe")
 
 
 class PositionHistory:
@@ -164,6 +166,36 @@ class SimulatedRig:
         """Cut every scanner client's TCP connection (as a cable pull would)."""
         return self.scanner_server.drop_clients()
 
+    def kill_scanner(self) -> None:
+        """The scanner goes dead (power loss): its connections are cut and it stops listening."""
+        self.scanner_server.stop()
+
+    def drive_state(self) -> dict[str, Any]:
+        """The drive's CiA 402 state and actual velocity (counts/s), read after advancing its physics."""
+        with self.drive.lock:
+            velocity = int(self.drive.read(cia402.VELOCITY_ACTUAL))
+            return {"state": self.drive.state.name, "velocity_actual": velocity}
+
+    def command(self, line: str) -> dict[str, Any]:
+        """One line of the control channel of ``python -m sim.rig`` (see :func:`main`)."""
+        words = line.split()
+        if not words:
+            raise ValueError("empty command")
+        cmd, args = words[0], words[1:]
+        if cmd == "drop_scanner":
+            return {"ok": True, "dropped": self.drop_scanner_connections()}
+        if cmd == "kill_scanner":
+            self.kill_scanner()
+            return {"ok": True}
+        if cmd == "motor_fault":
+            self.inject_motor_fault(args[0] if args else "following_error")
+            return {"ok": True}
+        if cmd == "drive_state":
+            return {"ok": True, **self.drive_state()}
+        if cmd == "describe":
+            return {"ok": True, **self.describe()}
+        raise ValueError(f"unknown command {cmd!r} (known: {', '.join(COMMANDS)})")
+
     def describe(self) -> dict[str, Any]:
         return {
             "scene": self.scanner.scene.name,
@@ -189,7 +221,11 @@ def main(argv: list[str] | None = None) -> int:
     """``python -m sim.rig``: serve one simulated rig until stdin closes (or Ctrl-C).
 
     Prints one JSON line with ``scanner_url`` and ``motor_url`` once both are listening, so a
-    service in another process can be pointed at them (hardware-in-the-loop tests).
+    service in another process can be pointed at them (hardware-in-the-loop tests). Each line
+    then read from stdin is a control command (fault injection; :data:`COMMANDS`), answered by
+    one JSON line on stdout: ``drop_scanner`` (cut the scanner's connections), ``kill_scanner``
+    (the scanner goes dead), ``motor_fault KIND`` (``following_error``, ``over_current``,
+    ``heartbeat_loss``), ``drive_state``, ``describe``; an error is ``{"ok": false, "error"}``.
     """
     import argparse
     import json
@@ -219,7 +255,14 @@ def main(argv: list[str] | None = None) -> int:
     ) as rig:
         print(json.dumps(rig.describe()), flush=True)
         with contextlib.suppress(KeyboardInterrupt):
-            sys.stdin.read()  # until the parent closes our stdin
+            for line in sys.stdin:  # until the parent closes our stdin
+                if not line.strip():
+                    continue
+                try:
+                    reply = rig.command(line)
+                except (ValueError, LookupError) as exc:
+                    reply = {"ok": False, "error": str(exc)}
+                print(json.dumps(reply), flush=True)
     return 0
 
 
