@@ -29,6 +29,11 @@ TOKEN_ENV = "LRMS_API_TOKEN"
 DEFAULT_RIG = "default_rig.toml"
 
 
+#: The coverage factor k of seed 003's critical-point interval when a request, the rig's ``[fit]``
+#: table or ``lrms fit --k`` gives none: the k-ellipsoids of every point at k = 3 (seed 003).
+DEFAULT_K = 3.0
+
+
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -122,7 +127,7 @@ class FitConfig(_Strict):
 
     roi_min_m: tuple[float, float, float] | None = None
     roi_max_m: tuple[float, float, float] | None = None
-    k: float = Field(default=3.0, gt=0.0, le=10.0)
+    k: float = Field(default=DEFAULT_K, gt=0.0, le=10.0)
     min_range_m: float = Field(default=0.05, ge=0.0)
     max_range_m: float = Field(default=20.0, gt=0.0)
 

@@ -13,12 +13,12 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from lrms import kinematics
 from lrms.covariance import NoiseModel
 from lrms.errors import FitError
-from service.config import RigConfig
+from service.config import DEFAULT_K, RigConfig
 from service.models import MeasurementRequest
 from service.sweep import MappedSweep, roi_mask
 
@@ -26,6 +26,8 @@ FloatArray = NDArray[np.float64]
 
 #: Points farther than this many robust standard deviations from the fitted elbow are trimmed.
 ELBOW_TRIM = 4.0
+#: The GUM interval is the fit's standard uncertainty times this factor (about 95 %).
+GUM_COVERAGE_FACTOR = 2.0
 
 
 def noise_model(config: RigConfig) -> NoiseModel:
@@ -66,11 +68,126 @@ def _vec(v: Any) -> list[float]:
     return [float(x) for x in np.asarray(v, dtype=np.float64).reshape(-1)]
 
 
+def cylinder_result(
+    points: ArrayLike,
+    *,
+    rays: Any = None,
+    noise: NoiseModel,
+    p: float,
+    k: float | None = None,
+    monte_carlo: int = 0,
+    rng: np.random.Generator,
+    isotropic_sigma: float | None = None,
+    world_from_rig: FloatArray | None = None,
+) -> tuple[dict[str, Any], Any, Any]:
+    """Cylinder fit, its three intervals and the JSON result: the one implementation behind the
+    service's cylinder measurements and ``lrms fit --model cylinder``.
+
+    ``points``: rig-frame points (n, 3). ``rays`` (:class:`lrms.cylinder.Rays`): every point's
+    own beam; given, the fit is the line-of-sight fit and the critical-point ellipsoids sit where
+    the beams meet the cylinder; ``None``: the orthogonal fit with isotropic ellipsoids of
+    ``isotropic_sigma`` (``None``: the fit's rms residual) on the inliers projected onto the
+    surface. ``k``: coverage factor of the critical-point interval (``None``:
+    :data:`service.config.DEFAULT_K`). ``monte_carlo``: Monte Carlo refits (0: none).
+    ``world_from_rig`` (4 x 4): positions and directions of the result in that frame; the axis
+    direction's sign is canonical (largest component positive).
+
+    Returns ``(result, fit, critical_point_interval)``. Result keys: ``model``, ``n_points``,
+    ``n_inliers``, ``diameter_m``, ``radius_m``, ``axis_point_m``, ``axis_direction``, ``rmse_m``,
+    ``chi2_dof``, ``line_of_sight``, ``p_m``, ``sigma_l_m``, ``base_point_m``, ``covariance``
+    {``parameters``, ``e1``, ``e2``, ``matrix``}, ``uncertainty`` {``k``, ``d_min_m``, ``d_max_m``,
+    ``std_m``, ``critical_point`` {``r_ce_m``, ``percentile``}, ``gum`` {``std_m``, ``low_m``,
+    ``high_m``, ``coverage``, ``coverage_factor``}, ``monte_carlo`` ({``n``, ``low_m``, ``high_m``,
+    ``std_m``, ``coverage``, ``n_failed``} or ``None``)}.
+    """
+    from lrms.cylinder import fit_cylinder
+    from lrms.uncertainty import critical_point_interval, gum_interval, monte_carlo_interval
+
+    kk = DEFAULT_K if k is None else float(k)
+    pts = np.asarray(points, dtype=np.float64)
+    line_of_sight = rays is not None
+    fit = fit_cylinder(pts, line_of_sight=line_of_sight, p=p, noise=noise, rays=rays, rng=rng)
+    cyl = fit.cylinder
+    sigma_l = noise.sigma_l if line_of_sight or isotropic_sigma is not None else float(fit.rmse)
+    if line_of_sight:
+        inlier_rays = rays.subset(fit.inliers)
+        crit = critical_point_interval(cyl, rays=inlier_rays, noise=noise, k=kk, p=p)
+    else:
+        iso = float(fit.rmse) if isotropic_sigma is None else float(isotropic_sigma)
+        surf = pts[fit.inliers]
+        rad = cyl.radial(surf)
+        surf = surf - rad * (1.0 - cyl.radius / np.linalg.norm(rad, axis=1))[:, None]
+        crit = critical_point_interval(cyl, surf, k=kk, isotropic_sigma=iso)
+    gum = gum_interval(fit, coverage_factor=GUM_COVERAGE_FACTOR)
+    mc: dict[str, Any] | None = None
+    if monte_carlo > 0:
+        if line_of_sight:
+            m = monte_carlo_interval(fit, inlier_rays, noise=noise, n=monte_carlo, p=p, rng=rng)
+        else:
+            m = monte_carlo_interval(
+                fit, points=pts[fit.inliers], isotropic_sigma=isotropic_sigma, n=monte_carlo, rng=rng
+            )
+        mc = {
+            "n": int(monte_carlo),
+            "low_m": float(m.low),
+            "high_m": float(m.high),
+            "std_m": float(m.std),
+            "coverage": float(m.coverage),
+            "n_failed": int(m.n_failed),
+        }
+    tf = np.eye(4) if world_from_rig is None else np.asarray(world_from_rig, dtype=np.float64)
+    rot = tf[:3, :3]
+
+    def to_frame(x: Any) -> list[float]:
+        return _vec(rot @ np.asarray(x, dtype=np.float64) + tf[:3, 3])
+
+    direction = rot @ cyl.direction
+    if direction[int(np.argmax(np.abs(direction)))] < 0:  # an axis has no sign: report it canonically
+        direction = -direction
+    result = {
+        "model": "cylinder",
+        "n_points": int(pts.shape[0]),
+        "n_inliers": int(fit.n_inliers),
+        "diameter_m": float(fit.diameter),
+        "radius_m": float(cyl.radius),
+        "axis_point_m": to_frame(cyl.point),
+        "axis_direction": _vec(direction),
+        "rmse_m": float(fit.rmse),
+        "chi2_dof": float(fit.chi2_dof),
+        "line_of_sight": bool(line_of_sight),
+        "p_m": float(p),
+        "sigma_l_m": float(sigma_l),
+        "base_point_m": None if fit.base_point is None else to_frame(fit.base_point),
+        "covariance": {
+            "parameters": ["tilt_e1_rad", "tilt_e2_rad", "shift_e1_m", "shift_e2_m", "radius_m"],
+            "e1": _vec(rot @ fit.frame[0]),
+            "e2": _vec(rot @ fit.frame[1]),
+            "matrix": np.asarray(fit.covariance, dtype=np.float64).tolist(),
+        },
+        "uncertainty": {
+            "k": kk,
+            "d_min_m": float(crit.d_min),
+            "d_max_m": float(crit.d_max),
+            "std_m": float(fit.std_diameter),
+            "critical_point": {"r_ce_m": float(crit.r_ce), "percentile": float(crit.percentile)},
+            "gum": {
+                "std_m": float(gum.std),
+                "low_m": float(gum.low),
+                "high_m": float(gum.high),
+                "coverage": float(gum.coverage),
+                "coverage_factor": GUM_COVERAGE_FACTOR,
+            },
+            "monte_carlo": mc,
+        },
+    }
+    return result, fit, crit
+
+
 def fit_cylinder_result(
     mapped: MappedSweep, keep: NDArray[np.bool_], request: MeasurementRequest, config: RigConfig
 ) -> dict[str, Any]:
-    from lrms.cylinder import Rays, fit_cylinder
-    from lrms.uncertainty import critical_point_interval, gum_interval, monte_carlo_interval
+    """The cylinder of a measurement: :func:`cylinder_result` with every point's own beam."""
+    from lrms.cylinder import Rays
 
     cal = config.calibration
     nm = noise_model(config)
@@ -87,42 +204,19 @@ def fit_cylinder_result(
         sigma_perp=np.maximum(lateral, 1e-7),
     )
     seed = request.options.seed if request.options.seed is not None else 0
-    rng = np.random.default_rng(seed)
-    result = fit_cylinder(rays.points(), line_of_sight=True, p=cal.p, noise=nm, rays=rays, rng=rng)
     k = request.options.k if request.options.k is not None else config.fit.k
-    inlier_rays = rays.subset(result.inliers)
-    cpi = critical_point_interval(result.cylinder, rays=inlier_rays, noise=nm, k=k, p=cal.p)
-    gum = gum_interval(result, coverage_factor=2.0)
-    mc: dict[str, Any] | None = None
-    if request.options.monte_carlo > 0:
-        m = monte_carlo_interval(
-            result, inlier_rays, noise=nm, n=max(10, request.options.monte_carlo), p=cal.p, rng=rng
-        )
-        mc = {"low_m": m.low, "high_m": m.high, "std_m": m.std, "coverage": m.coverage, "n_failed": m.n_failed}
-    cyl = result.cylinder
-    rot = cal.world_from_rig[:3, :3]
-    direction = rot @ cyl.direction
-    if direction[int(np.argmax(np.abs(direction)))] < 0:  # an axis has no sign: report it canonically
-        direction = -direction
-    return {
-        "target": "cylinder",
-        "diameter_m": float(result.diameter),
-        "axis_point_m": _vec(cal.to_world(cyl.point)),
-        "axis_direction": _vec(direction),
-        "rmse_m": float(result.rmse),
-        "n_inliers": int(result.n_inliers),
-        "chi2_dof": float(result.chi2_dof),
-        "uncertainty": {
-            "k": float(k),
-            "d_min_m": float(cpi.d_min),
-            "d_max_m": float(cpi.d_max),
-            "std_m": float(result.std_diameter),
-            "critical_point": {"r_ce_m": float(cpi.r_ce), "percentile": float(cpi.percentile)},
-            "gum": {"low_m": gum.low, "high_m": gum.high, "coverage": gum.coverage, "coverage_factor": 2.0},
-            "monte_carlo": mc,
-        },
-        "fit_seed": seed,
-    }
+    result, _, _ = cylinder_result(
+        rays.points(),
+        rays=rays,
+        noise=nm,
+        p=cal.p,
+        k=k,
+        monte_carlo=request.options.monte_carlo,
+        rng=np.random.default_rng(seed),
+        world_from_rig=cal.world_from_rig,
+    )
+    result["fit_seed"] = seed
+    return result
 
 
 def fit_elbow_result(
@@ -157,7 +251,7 @@ def fit_elbow_result(
         trim=ELBOW_TRIM,
         rng=np.random.default_rng(seed),
     )
-    out: dict[str, Any] = {"target": "elbow", **fit.to_dict(), "fit_seed": seed}
+    out: dict[str, Any] = {**fit.to_dict(), "fit_seed": seed}
     if fit.inliers is not None:
         out["n_inliers"] = int(np.count_nonzero(fit.inliers))
     return out

@@ -51,7 +51,7 @@ def plot_measurement(cloud_path: str | None, result: dict[str, Any], config: Rig
     ax.set_title(f"{roi.shape[0]} points in the region of interest")
     ax2 = fig.add_subplot(1, 2, 2)
     ax2.scatter(roi[:, 0], roi[:, 1], s=0.5, alpha=0.4)
-    if result.get("target") == "cylinder":
+    if result.get("model") == "cylinder":
         c = np.asarray(result["axis_point_m"])
         r = float(result["diameter_m"]) / 2
         t = np.linspace(0, 2 * np.pi, 200)

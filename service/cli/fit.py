@@ -37,7 +37,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="range noise sigma_l in mm (default 11.67, seed 003); with --no-line-of-sight the isotropic "
         "noise (default: the fit's rms residual)",
     )
-    cyl.add_argument("--k", type=float, default=1.0, help="error ellipsoid factor k of the critical-point interval")
+    cyl.add_argument(
+        "--k",
+        type=float,
+        default=None,
+        help="error ellipsoid factor k of the critical-point interval (default 3: service.config.DEFAULT_K)",
+    )
     cyl.add_argument(
         "--monte-carlo", type=int, default=0, metavar="N", help="also a Monte Carlo interval from N replicas"
     )
@@ -77,87 +82,38 @@ def _run_elbow(args: argparse.Namespace, points: Any) -> dict[str, Any]:
 
 
 def fit_cylinder_file(args: argparse.Namespace, points: Any) -> dict[str, Any]:
-    """The cylinder branch: fit, three intervals, optional plot; a JSON-ready dict."""
+    """The cylinder branch: :func:`service.fitting.cylinder_result`, optional plot; a JSON-ready dict."""
     import numpy as np
 
     from lrms.covariance import NoiseModel
-    from lrms.cylinder import fit_cylinder, rays_from_points
+    from lrms.cylinder import rays_from_points
     from lrms.errors import LrmsError
-    from lrms.uncertainty import critical_point_interval, gum_interval, monte_carlo_interval
+    from service.fitting import cylinder_result
 
     if args.p < 0 or not np.isfinite(args.p):
         raise LrmsError(f"--p must be a length >= 0, got {args.p}")
     if args.sigma_l_mm is not None and not args.sigma_l_mm > 0:
         raise LrmsError(f"--sigma-l-mm must be > 0, got {args.sigma_l_mm}")
+    if args.k is not None and not 0 < args.k <= 10:
+        raise LrmsError(f"--k must be in (0, 10], got {args.k}")
     noise = NoiseModel() if args.sigma_l_mm is None else NoiseModel(sigma_l=args.sigma_l_mm / 1e3)
-    rng = np.random.default_rng(args.seed)
     pts = np.asarray(points, dtype=np.float64)
     rays = rays_from_points(pts, args.p, noise) if args.line_of_sight else None
-    fit = fit_cylinder(pts, line_of_sight=args.line_of_sight, p=args.p, noise=noise, rays=rays, rng=rng)
-    cyl = fit.cylinder
-    if rays is not None:
-        inlier_rays = rays.subset(fit.inliers)
-        crit = critical_point_interval(cyl, rays=inlier_rays, noise=noise, k=args.k, p=args.p)
-    else:
-        iso = noise.sigma_l if args.sigma_l_mm is not None else fit.rmse
-        surf = pts[fit.inliers]
-        rad = cyl.radial(surf)
-        surf = surf - rad * (1.0 - cyl.radius / np.linalg.norm(rad, axis=1))[:, None]
-        crit = critical_point_interval(cyl, surf, k=args.k, isotropic_sigma=iso)
-    gum = gum_interval(fit)
-    unc: dict[str, Any] = {
-        "k": args.k,
-        "d_min_m": crit.d_min,
-        "d_max_m": crit.d_max,
-        "critical_r_ce_m": crit.r_ce,
-        "std_m": gum.std,
-        "gum": {"std_m": gum.std, "low_m": gum.low, "high_m": gum.high, "coverage": round(gum.coverage, 4)},
-    }
-    if args.monte_carlo:
-        if rays is not None:
-            mc = monte_carlo_interval(fit, inlier_rays, noise=noise, n=args.monte_carlo, rng=rng, p=args.p)
-        else:
-            mc = monte_carlo_interval(
-                fit,
-                points=pts[fit.inliers],
-                isotropic_sigma=None if args.sigma_l_mm is None else noise.sigma_l,
-                n=args.monte_carlo,
-                rng=rng,
-            )
-        unc["monte_carlo"] = {
-            "n": args.monte_carlo,
-            "std_m": mc.std,
-            "low_m": mc.low,
-            "high_m": mc.high,
-            "coverage": mc.coverage,
-            "failed": mc.n_failed,
-        }
-    result: dict[str, Any] = {
-        "model": "cylinder",
-        "file": str(args.file),
-        "n_points": int(pts.shape[0]),
-        "n_inliers": fit.n_inliers,
-        "diameter_m": cyl.diameter,
-        "radius_m": cyl.radius,
-        "axis_point_m": cyl.point.tolist(),
-        "axis_direction": cyl.direction.tolist(),
-        "rmse_m": fit.rmse,
-        "chi2_dof": fit.chi2_dof,
-        "line_of_sight": fit.line_of_sight,
-        "p_m": args.p,
-        "sigma_l_m": noise.sigma_l if args.line_of_sight else (fit.rmse if args.sigma_l_mm is None else noise.sigma_l),
-        "base_point_m": None if fit.base_point is None else fit.base_point.tolist(),
-        "covariance": {
-            "parameters": ["tilt_e1_rad", "tilt_e2_rad", "shift_e1_m", "shift_e2_m", "radius_m"],
-            "e1": fit.frame[0].tolist(),
-            "e2": fit.frame[1].tolist(),
-            "matrix": fit.covariance.tolist(),
-        },
-        "uncertainty": unc,
-    }
+    core, fit, crit = cylinder_result(
+        pts,
+        rays=rays,
+        noise=noise,
+        p=args.p,
+        k=args.k,
+        monte_carlo=args.monte_carlo or 0,
+        rng=np.random.default_rng(args.seed),
+        isotropic_sigma=None if args.sigma_l_mm is None else noise.sigma_l,
+    )
+    result: dict[str, Any] = {"model": "cylinder", "file": str(args.file), **core}
     if args.plot:
         from service.plots import cylinder_figure
 
+        cyl = fit.cylinder
         cylinder_figure(pts, fit.inliers, cyl.point, cyl.direction, cyl.radius, crit.radii, crit.r_ce, args.plot)
         result["plot"] = str(args.plot)
     return result
@@ -181,7 +137,7 @@ def _print_text(result: dict[str, Any]) -> None:
     )
     g = u["gum"]
     print(f"GUM: u(d) = {g['std_m'] * 1e3:.3f} mm, 95 %: [{g['low_m'] * 1e3:.3f}, {g['high_m'] * 1e3:.3f}] mm")
-    if "monte_carlo" in u:
+    if u.get("monte_carlo"):
         m = u["monte_carlo"]
         print(f"Monte Carlo ({m['n']}): 95 %: [{m['low_m'] * 1e3:.3f}, {m['high_m'] * 1e3:.3f}] mm")
     if result.get("plot"):

@@ -65,7 +65,7 @@ def test_text_output_through_the_installed_command(sweep_file: tuple[Path, float
         timeout=120,
     )
     assert proc.returncode == 0, proc.stderr
-    assert "diameter:" in proc.stdout and "critical point (k=1)" in proc.stdout and "GUM" in proc.stdout
+    assert "diameter:" in proc.stdout and "critical point (k=3)" in proc.stdout and "GUM" in proc.stdout
 
 
 def test_errors_are_one_line_and_exit_1(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
