@@ -72,7 +72,7 @@ class SimProcess:
             "--kinematics",
             json.dumps(config.kinematics),
             "--noise",
-            json.dumps(config.noise.model_dump()),
+            json.dumps(config.noise.si()),
         ]
         self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         assert self.proc.stdout is not None
@@ -100,7 +100,10 @@ class SimProcess:
 
 
 def write_ply(path: Path, mapped: MappedSweep) -> None:
-    """Binary little-endian PLY: x y z (float32, world frame) plus range, alpha, beta and scan index."""
+    """Binary little-endian PLY (``plyfile``): x y z (float32, world frame) plus range, alpha, beta
+    and scan index; written to a side file first and renamed, so a reader never sees half a cloud."""
+    from plyfile import PlyData, PlyElement
+
     n = mapped.points.shape[0]
     rec = np.empty(
         n,
@@ -117,16 +120,14 @@ def write_ply(path: Path, mapped: MappedSweep) -> None:
     rec["x"], rec["y"], rec["z"] = mapped.points[:, 0], mapped.points[:, 1], mapped.points[:, 2]
     rec["range"], rec["alpha"], rec["beta"] = mapped.ranges, mapped.alpha, mapped.beta
     rec["scan"] = mapped.scan_index
-    header = (
-        "ply\nformat binary_little_endian 1.0\ncomment lrms sweep cloud, world frame (m, rad)\n"
-        f"element vertex {n}\n"
-        "property float x\nproperty float y\nproperty float z\n"
-        "property float range\nproperty float alpha\nproperty float beta\nproperty int scan\nend_header\n"
+    ply = PlyData(
+        [PlyElement.describe(rec, "vertex")],
+        text=False,
+        byte_order="<",
+        comments=["lrms sweep cloud, world frame (m, rad)"],
     )
     tmp = path.with_suffix(".ply.part")
-    with open(tmp, "wb") as f:
-        f.write(header.encode("ascii"))
-        f.write(rec.tobytes())
+    ply.write(str(tmp))
     tmp.replace(path)
 
 
@@ -215,12 +216,7 @@ class Rig:
                 from sim.rig import SimulatedRig
                 from sim.scene import SensorModel
 
-                n = cfg.noise
-                sensor = SensorModel(
-                    sigma_l=n.sigma_l_m,
-                    sigma_alpha=math.radians(n.sigma_alpha_deg),
-                    sigma_beta=math.radians(n.sigma_beta_deg),
-                )
+                sensor = SensorModel(**cfg.noise.si())
                 self.sim = SimulatedRig(
                     cfg.sim.scene,
                     cfg.calibration,

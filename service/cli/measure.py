@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
     result["raw_path"] = final.raw_path
     result["cloud_path"] = final.cloud_path
     if args.plot:
-        from service.plot import plot_measurement
+        from service.plots import plot_measurement
 
         plot_measurement(final.cloud_path, result, cfg, args.plot)
     print(json.dumps(result, indent=2))

@@ -24,7 +24,7 @@ from drivers.servo import cia402
 from service import mcaplog
 from service.api import ServerThread, create_app
 from service.config import parse_config, parse_toml
-from service.plot import read_ply_points
+from service.pointio import read_points
 from service.replay import replay
 from service.rig import build_service
 from tests.conftest import REPO
@@ -129,7 +129,7 @@ def test_measures_the_cylinder_with_the_rig_in_another_process(sim_process: dict
         assert n_tel == res["sweep"]["scans_received"]  # every scan received is in the log
         ply = tmp_path / "cloud.ply"
         ply.write_bytes(cloud.content)
-        assert read_ply_points(ply).shape[0] == res["mapping"]["points"]
+        assert read_points(ply).shape[0] == res["mapping"]["points"]
         # lrms replay: mapping and fit again from the log alone reproduce the stored result
         out = replay(path)
         assert out["reproduced"] is True, out["max_abs_diff"]
