@@ -119,12 +119,15 @@ async def _load(
     interval: float = 0.0,
     server: list[float] | None = None,
     wait_go: bool = False,
+    client_lag: list[float] | None = None,
 ) -> tuple[list[float], int, int, float]:
     """``clients`` concurrent clients for ``duration`` s; returns latencies, errors, requests and the
     time the clients took to open their connections (warm-up, not counted in the latencies).
     ``server`` (if given) receives the app's own time of each response (ms). With ``wait_go``
     (a load process), print ``ready`` once imported and wait for ``go`` on stdin, so that no load
-    process is still starting up (importing, a CPU burst) while the others measure."""
+    process is still starting up (importing, a CPU burst) while the others measure. ``client_lag``
+    (if given) receives how late (ms) this process's own event loop woke from 20 ms sleeps during
+    the load: time a response may have waited in the client, not in the server."""
     import httpx
 
     if wait_go:
@@ -168,7 +171,14 @@ async def _load(
                 if interval > 0:  # an HMI polls, it does not hammer
                     await asyncio.sleep(interval * (0.5 + (j * 0.618) % 1.0))
 
-        await asyncio.gather(*(worker(i) for i in range(clients)))
+        async def watch_lag() -> None:
+            while time.monotonic() < end:
+                t = time.perf_counter()
+                await asyncio.sleep(0.02)
+                if client_lag is not None:
+                    client_lag.append((time.perf_counter() - t - 0.02) * 1e3)
+
+        await asyncio.gather(watch_lag(), *(worker(i) for i in range(clients)))
     return latencies, errors, requests, warmup_s
 
 
@@ -180,6 +190,7 @@ def _load_processes(
     interval: float,
     processes: int = 4,
     server: list[float] | None = None,
+    client_lag: list[float] | None = None,
 ) -> tuple[list[float], int, int, float]:
     """The clients spread over a few load processes (one Python process cannot drive 100 clients
     without its own event loop becoming the bottleneck it is meant to measure)."""
@@ -220,10 +231,38 @@ def _load_processes(
         lat += r["latencies"]
         if server is not None:
             server += r["server_ms"]
+        if client_lag is not None:
+            client_lag += r["client_lag_ms"]
         errors += r["errors"]
         requests += r["requests"]
         warm = max(warm, r["warmup_s"])
     return lat, errors, requests, warm
+
+
+def _loop_lag_buckets(base: str) -> dict[float, float]:
+    """Cumulative bucket counts of the service's ``lrms_event_loop_lag_seconds`` histogram."""
+    import httpx
+    from prometheus_client.parser import text_string_to_metric_families
+
+    out: dict[float, float] = {}
+    for fam in text_string_to_metric_families(httpx.get(base + "/metrics").text):
+        if fam.name == "lrms_event_loop_lag_seconds":
+            for sample in fam.samples:
+                if sample.name.endswith("_bucket"):
+                    out[float(sample.labels["le"])] = sample.value
+    return out
+
+
+def _lag_text(buckets: dict[float, float]) -> str:
+    total = buckets.get(float("inf"), 0.0)
+    if total <= 0:
+        return "no samples"
+    over = {ms: total - buckets.get(ms / 1e3, total) for ms in (10, 20, 50)}
+    top = min((le for le, c in buckets.items() if c >= total), default=float("inf"))
+    return (
+        f"{total:.0f} wake-ups, late by > 10 ms: {over[10]:.0f}, > 20 ms: {over[20]:.0f}, > 50 ms: {over[50]:.0f}, "
+        f"max <= {top * 1e3:.0f} ms"
+    )
 
 
 def bench_rest(clients: int, duration: float, interval: float, args_processes: int = 4) -> dict[str, Any]:
@@ -288,9 +327,12 @@ def bench_rest(clients: int, duration: float, interval: float, args_processes: i
                 time.sleep(0.05)
             paths.append(f"/api/v1/measurements/{mid}")
             server_ms: list[float] = []
+            client_lag: list[float] = []
+            lag0 = _loop_lag_buckets(base)
             lat, errors, n, warmup_s = _load_processes(
-                base, paths, clients, duration, interval, args_processes, server=server_ms
+                base, paths, clients, duration, interval, args_processes, server=server_ms, client_lag=client_lag
             )
+            lag1 = _loop_lag_buckets(base)
             while True:
                 m = httpx.get(f"{base}/api/v1/measurements/{mid}").json()
                 if m["state"] in ("done", "failed", "cancelled"):
@@ -316,6 +358,9 @@ def bench_rest(clients: int, duration: float, interval: float, args_processes: i
         "server_p50_ms": float(np.nanpercentile(server_ms, 50)),
         "server_p99_ms": float(np.nanpercentile(server_ms, 99)),
         "server_max_ms": float(np.nanmax(server_ms)),
+        "client_lag_p99_ms": float(np.percentile(client_lag, 99)),
+        "client_lag_max_ms": float(np.max(client_lag)),
+        "server_lag": {le: lag1[le] - lag0.get(le, 0.0) for le in lag1},
         "processes": args_processes,
         "warmup_s": warmup_s,
         "max_ms": float(lat_a.max()),
@@ -349,10 +394,12 @@ def main(argv: list[str] | None = None) -> int:
 
         w = json.loads(args.load_worker)
         srv: list[float] = []
+        lag: list[float] = []
         lat, err, n, warm = asyncio.run(
-            _load(w["base"], w["paths"], w["clients"], w["duration"], w["interval"], server=srv, wait_go=True)
+            _load(w["base"], w["paths"], w["clients"], w["duration"], w["interval"], srv, wait_go=True, client_lag=lag)
         )
-        print(json.dumps({"latencies": lat, "errors": err, "requests": n, "warmup_s": warm, "server_ms": srv}))
+        out = {"latencies": lat, "errors": err, "requests": n, "warmup_s": warm, "server_ms": srv, "client_lag_ms": lag}
+        print(json.dumps(out))
         return 0
     print(f"machine: {os.cpu_count()} cores, Python {sys.version.split()[0]}")
     rt = 25.0  # LMS100 scans/s at 0.25 deg (1081 beams)
@@ -375,6 +422,8 @@ def main(argv: list[str] | None = None) -> int:
             f"{r['errors']} errors, p50 {r['p50_ms']:.1f} ms, p99 {r['p99_ms']:.1f} ms (goal <= 50 ms), "
             f"max {r['max_ms']:.0f} ms (clients in {r['processes']} processes); time in the app (Server-Timing): "
             f"p50 {r['server_p50_ms']:.2f} ms, p99 {r['server_p99_ms']:.2f} ms, max {r['server_max_ms']:.0f} ms; "
+            f"the API's event loop (20 ms sleeps): {_lag_text(r['server_lag'])}; the load processes' own loops: "
+            f"late by p99 {r['client_lag_p99_ms']:.1f} ms, max {r['client_lag_max_ms']:.0f} ms; "
             f"the {r['clients']} connections took {r['warmup_s']:.2f} s to open; "
             f"one idle client: p50 {r['idle_p50_ms']:.1f} ms, p99 {r['idle_p99_ms']:.1f} ms "
             f"(p99 ratio {r['p99_ms'] / r['idle_p99_ms']:.1f}x); the same load with the rig idle: "

@@ -96,6 +96,12 @@ class Metrics:
         self.http_requests = Counter(
             "lrms_http_requests", "HTTP requests", ["method", "route", "status"], registry=self.registry
         )
+        self.loop_lag = Histogram(
+            "lrms_event_loop_lag_seconds",
+            "How late the API's event loop wakes a 20 ms sleep (GIL held by other threads, CPU starvation)",
+            buckets=(0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0),
+            registry=self.registry,
+        )
         self.http_seconds = Histogram(
             "lrms_http_request_seconds",
             "Time from a request reaching the app to its response headers being sent",

@@ -166,6 +166,17 @@ def _schedule_out(s: Schedule) -> ScheduleOut:
     )
 
 
+async def _watch_loop_lag(metrics: Metrics, period_s: float = 0.02) -> None:
+    """Observe how late the event loop wakes from a ``period_s`` sleep: every request waits at
+    least that long before the app sees it, so it tells a stalled process (another thread holding
+    the GIL, the process not scheduled) from slow handlers (``lrms_http_request_seconds``)."""
+    loop = asyncio.get_running_loop()
+    while True:
+        t = loop.time()
+        await asyncio.sleep(period_s)
+        metrics.loop_lag.observe(max(loop.time() - t - period_s, 0.0))
+
+
 def create_app(service: Service, manage_lifecycle: bool = True) -> FastAPI:
     """The FastAPI app for ``service`` (started and stopped with the app unless told otherwise)."""
 
@@ -173,9 +184,11 @@ def create_app(service: Service, manage_lifecycle: bool = True) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         if manage_lifecycle:
             service.start()
+        watch = asyncio.create_task(_watch_loop_lag(service.metrics))
         try:
             yield
         finally:
+            watch.cancel()
             if manage_lifecycle:
                 service.stop()
 

@@ -324,3 +324,9 @@ def test_responses_carry_the_app_time(served: tuple[httpx.Client, GatedMeasure, 
     schema = spec["paths"]["/api/v1/measurements/{mid}"]["get"]["responses"]["200"]["content"]["application/json"]
     assert schema["schema"]["$ref"].endswith("/MeasurementOut")
     assert "lrms_http_request_seconds_bucket" in client.get("/metrics").text
+    # the event loop's lag is watched while the app serves
+    end = time.monotonic() + 10.0
+    while "lrms_event_loop_lag_seconds_count 0.0" in client.get("/metrics").text:
+        assert time.monotonic() < end, "the event-loop lag watcher never observed"
+        time.sleep(0.05)
+    assert "lrms_event_loop_lag_seconds_count" in client.get("/metrics").text
