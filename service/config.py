@@ -13,6 +13,7 @@ empty, the ``LRMS_API_TOKEN`` environment variable; with neither, write endpoint
 
 from __future__ import annotations
 
+import math
 import os
 import tomllib
 from importlib import resources
@@ -79,6 +80,15 @@ class NoiseConfig(_Strict):
     sigma_l_m: float = Field(default=0.01167, ge=0.0, le=1.0)
     sigma_alpha_deg: float = Field(default=1.74e-3, ge=0.0, le=10.0)
     sigma_beta_deg: float = Field(default=3.6e-5, ge=0.0, le=10.0)
+
+    def si(self) -> dict[str, float]:
+        """``sigma_l`` (m), ``sigma_alpha`` and ``sigma_beta`` (rad): the one place degrees become
+        radians (for :class:`lrms.covariance.NoiseModel`, the simulated sensor, ``python -m sim.rig``)."""
+        return {
+            "sigma_l": float(self.sigma_l_m),
+            "sigma_alpha": math.radians(self.sigma_alpha_deg),
+            "sigma_beta": math.radians(self.sigma_beta_deg),
+        }
 
 
 class StorageConfig(_Strict):

@@ -31,12 +31,7 @@ GUM_COVERAGE_FACTOR = 2.0
 
 
 def noise_model(config: RigConfig) -> NoiseModel:
-    n = config.noise
-    return NoiseModel(
-        sigma_l=n.sigma_l_m,
-        sigma_alpha=float(np.deg2rad(n.sigma_alpha_deg)),
-        sigma_beta=float(np.deg2rad(n.sigma_beta_deg)),
-    )
+    return NoiseModel(**config.noise.si())
 
 
 def _roi(request: MeasurementRequest, config: RigConfig) -> tuple[Any, Any]:

@@ -238,18 +238,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--can", choices=("socketcand",), default="socketcand")
     parser.add_argument("--node", type=int, default=1)
     parser.add_argument("--kinematics", default="{}", help="JSON table as in the rig TOML [kinematics]")
-    parser.add_argument("--noise", default="{}", help="JSON: sigma_l_m, sigma_alpha_deg, sigma_beta_deg")
+    parser.add_argument("--noise", default="{}", help="JSON: sigma_l (m), sigma_alpha, sigma_beta (rad)")
     args = parser.parse_args(argv)
     calibration = RigCalibration.from_dict(json.loads(args.kinematics))
     noise = json.loads(args.noise)
-    sensor_kw: dict[str, float] = {}
-    if "sigma_l_m" in noise:
-        sensor_kw["sigma_l"] = float(noise["sigma_l_m"])
-    if "sigma_alpha_deg" in noise:
-        sensor_kw["sigma_alpha"] = float(np.deg2rad(noise["sigma_alpha_deg"]))
-    if "sigma_beta_deg" in noise:
-        sensor_kw["sigma_beta"] = float(np.deg2rad(noise["sigma_beta_deg"]))
-    sensor = SensorModel(**sensor_kw)
+    unknown = set(noise) - {"sigma_l", "sigma_alpha", "sigma_beta"}
+    if unknown:
+        parser.error(f"--noise: unknown keys {sorted(unknown)} (sigma_l in m, sigma_alpha and sigma_beta in rad)")
+    sensor = SensorModel(**{k: float(v) for k, v in noise.items()})
     with SimulatedRig(
         args.scene, calibration, sensor, seed=args.seed, cola=args.cola, can=args.can, node=args.node
     ) as rig:

@@ -92,3 +92,13 @@ def test_the_real_rig_example_in_the_docs_is_valid() -> None:
     assert block is not None
     cfg = parse_toml(block.group(1))
     assert not cfg.is_sim and cfg.motor.url is not None and cfg.motor.url.startswith("canopen+socketcan://")
+
+
+def test_noise_in_degrees_becomes_the_si_noise_model_once() -> None:
+    from lrms.covariance import NoiseModel
+    from service.fitting import noise_model
+
+    cfg = parse_toml("[sim]\n[noise]\nsigma_l_m = 0.02\nsigma_alpha_deg = 0.5\nsigma_beta_deg = 0.01\n")
+    si = cfg.noise.si()
+    assert si == pytest.approx({"sigma_l": 0.02, "sigma_alpha": np.pi / 360, "sigma_beta": np.pi / 18000})
+    assert noise_model(cfg) == NoiseModel(**si)

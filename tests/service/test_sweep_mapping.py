@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from numpy.typing import NDArray
 
 from lrms.kinematics import RigCalibration, forward
 from service.sweep import GapCounter, ScanRecord, SweepError, beam_interval_us, interpolate_angle, map_sweep
@@ -19,7 +20,9 @@ def beta_true(t: np.ndarray) -> np.ndarray:
     return -0.35 + 0.17 * t + 0.01 * np.sin(2 * np.pi * 0.5 * t)
 
 
-def _sweep(rng: np.random.Generator, n_scans: int = 250):
+def _sweep(
+    rng: np.random.Generator, n_scans: int = 250
+) -> tuple[list[ScanRecord], ClockSync, NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
     f, step = 50.0, np.deg2rad(0.5)
     n_beams = 541
     dt_us = beam_interval_us(step, f)
@@ -122,3 +125,16 @@ def test_gap_counter_counts_every_missing_scan_across_the_wrap() -> None:
     assert g.missing == 1 + 1 + 3 and g.gaps == [(65531, 1), (65533, 1), (0, 3)]
     g.reset_reference()
     assert g.add(100) == 0
+
+
+def test_motor_samples_are_added_as_one_batch() -> None:
+    from service.sweep import MotorTrack
+
+    track = MotorTrack()
+    track.add(5, 0.5, 0.1)
+    track.extend(np.array([1, 3, 2]), np.array([0.1, 0.3, 0.2]), np.array([0.0, 0.0, 0.0]))
+    assert len(track) == 4
+    t, p = track.arrays()
+    assert t.tolist() == [1, 2, 3, 5] and p.tolist() == [0.1, 0.2, 0.3, 0.5]
+    with pytest.raises(ValueError, match="differ in length"):
+        track.extend([1, 2], [0.1], [0.0, 0.0])
