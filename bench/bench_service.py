@@ -3,14 +3,17 @@
 1. Ingest pipeline: CoLa B LMDscandata telegrams (1081 beams, ray-cast by the simulated LMS100)
    -> decode -> record (clock model, gap count) -> raw log (telegram, LaserScan, /tf to MCAP on
    its thread) -> map to 3D, as scans per second and as a multiple of the sensor's 25 scans/s.
-   The decode-only rate of the same telegrams is printed as the baseline of this run.
+   The decode-only rate of the same telegrams is printed as the baseline of this run. One short
+   warm-up run, then five runs; the median is the figure (each run is printed too).
 2. REST under load: the service (``lrms serve`` on the default simulated rig, its own process)
-   runs a slow sweep while N concurrent clients poll it for D seconds; errors, p50/p99 latency,
-   and scans dropped (scan-counter gaps plus client queue drops) of that sweep. Baseline: the
-   same requests from one client with the rig idle, and the same N clients with the rig idle
-   (10 s), in the same run.
+   runs a slow sweep while N concurrent clients, spread over a few load processes (``--processes``,
+   none of them the server's), poll it for D seconds; errors, p50/p99 latency as the client sees
+   it, the time spent in the app (``Server-Timing``), how late the API's event loop and the load
+   processes' loops woke (stalls of either process), and scans dropped (scan-counter gaps and
+   client queue drops) of that sweep. Baselines in the same run: the same requests from one
+   client with the rig idle, and the same N clients with the rig idle (10 s).
 
-Run: ``.venv/bin/python -m bench.bench_service [--clients 100] [--duration 30] [--scans 500]``
+Run: ``.venv/bin/python -m bench.bench_service [--clients 100] [--duration 30] [--scans 500] [--processes 4]``
 """
 
 from __future__ import annotations
@@ -130,10 +133,13 @@ async def _load(
     the load: time a response may have waited in the client, not in the server."""
     import httpx
 
+    start_at = 0.0  # wall-clock time at which all load processes start measuring
     if wait_go:
         print("ready", flush=True)
-        if (await asyncio.to_thread(sys.stdin.readline)).strip() != "go":
-            raise RuntimeError("load worker: expected 'go' on stdin")
+        go, _, when = (await asyncio.to_thread(sys.stdin.readline)).strip().partition(" ")
+        if go != "go":
+            raise RuntimeError("load worker: expected 'go <start time>' on stdin")
+        start_at = float(when or 0.0)
         # the load generator's own garbage collections are not the server's latency
         gc.collect()
         gc.freeze()
@@ -148,6 +154,9 @@ async def _load(
         warm = await asyncio.gather(*(client.get(paths[0]) for _ in range(clients)), return_exceptions=True)
         warmup_s = time.perf_counter() - t_warm
         errors += sum(1 for r in warm if isinstance(r, BaseException))
+        # every process opens its connections first (a burst of connects and requests), then
+        # all measure from the same instant
+        await asyncio.sleep(max(0.0, start_at - time.time()))
         end = time.monotonic() + duration
 
         async def worker(i: int) -> None:
@@ -218,9 +227,10 @@ def _load_processes(
         assert p.stdout is not None
         if p.stdout.readline().strip() != "ready":
             raise RuntimeError("a load process did not start")
+    start_at = time.time() + 2.0  # after every process has opened its connections
     for p in procs:
         assert p.stdin is not None
-        p.stdin.write("go\n")
+        p.stdin.write(f"go {start_at}\n")
         p.stdin.flush()
     lat: list[float] = []
     errors = requests = 0
@@ -237,6 +247,12 @@ def _load_processes(
         requests += r["requests"]
         warm = max(warm, r["warmup_s"])
     return lat, errors, requests, warm
+
+
+def _cpu_s(pid: int) -> float:
+    """User + system CPU seconds of process ``pid`` so far (Linux ``/proc``)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def _loop_lag_buckets(base: str) -> dict[float, float]:
@@ -312,9 +328,12 @@ def bench_rest(clients: int, duration: float, interval: float, args_processes: i
             gc.freeze()
             idle, idle_err, _, _ = asyncio.run(_load(base, paths, 1, 3.0))
             # baseline 2: the same load with the rig idle (what the sweep adds is the difference)
-            quiet, quiet_err, _, _ = _load_processes(
+            cpu0, t0 = _cpu_s(proc.pid), time.monotonic()
+            quiet, quiet_err, quiet_n, _ = _load_processes(
                 base, paths, clients, min(duration, 10.0), interval, args_processes
             )
+            quiet_cpu = (_cpu_s(proc.pid) - cpu0) / (time.monotonic() - t0)
+            quiet_cpu_per_req = (_cpu_s(proc.pid) - cpu0) / max(quiet_n, 1)
             speed = 90.0 / max(duration, 1.0)  # the sweep lasts about the load's duration
             auth = {"Authorization": f"Bearer {token}"}
             r = httpx.post(
@@ -329,9 +348,11 @@ def bench_rest(clients: int, duration: float, interval: float, args_processes: i
             server_ms: list[float] = []
             client_lag: list[float] = []
             lag0 = _loop_lag_buckets(base)
+            cpu0, t0 = _cpu_s(proc.pid), time.monotonic()
             lat, errors, n, warmup_s = _load_processes(
                 base, paths, clients, duration, interval, args_processes, server=server_ms, client_lag=client_lag
             )
+            sweep_cpu = (_cpu_s(proc.pid) - cpu0) / (time.monotonic() - t0)
             lag1 = _loop_lag_buckets(base)
             while True:
                 m = httpx.get(f"{base}/api/v1/measurements/{mid}").json()
@@ -359,6 +380,9 @@ def bench_rest(clients: int, duration: float, interval: float, args_processes: i
         "server_p99_ms": float(np.nanpercentile(server_ms, 99)),
         "server_max_ms": float(np.nanmax(server_ms)),
         "client_lag_p99_ms": float(np.percentile(client_lag, 99)),
+        "server_cpu": sweep_cpu,
+        "quiet_cpu": quiet_cpu,
+        "quiet_cpu_ms_per_request": quiet_cpu_per_req * 1e3,
         "client_lag_max_ms": float(np.max(client_lag)),
         "server_lag": {le: lag1[le] - lag0.get(le, 0.0) for le in lag1},
         "processes": args_processes,
@@ -422,6 +446,8 @@ def main(argv: list[str] | None = None) -> int:
             f"{r['errors']} errors, p50 {r['p50_ms']:.1f} ms, p99 {r['p99_ms']:.1f} ms (goal <= 50 ms), "
             f"max {r['max_ms']:.0f} ms (clients in {r['processes']} processes); time in the app (Server-Timing): "
             f"p50 {r['server_p50_ms']:.2f} ms, p99 {r['server_p99_ms']:.2f} ms, max {r['server_max_ms']:.0f} ms; "
+            f"the service process used {r['server_cpu'] * 100:.0f} % of a core (rig idle, same load: "
+            f"{r['quiet_cpu'] * 100:.0f} %, {r['quiet_cpu_ms_per_request']:.2f} ms CPU per request); "
             f"the API's event loop (20 ms sleeps): {_lag_text(r['server_lag'])}; the load processes' own loops: "
             f"late by p99 {r['client_lag_p99_ms']:.1f} ms, max {r['client_lag_max_ms']:.0f} ms; "
             f"the {r['clients']} connections took {r['warmup_s']:.2f} s to open; "
