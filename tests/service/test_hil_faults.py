@@ -5,7 +5,8 @@ faults injected through its stdin control channel, the service driven over HTTP.
 * motor fault mid-sweep: sweep aborted, motor stopped, log readable up to the fault, failed with the reason;
 * dead scanner: failed with the reason, motor stopped;
 * the rig process killed mid-sweep: the motor stop cannot be confirmed and the failure says so;
-* restart with queued work: the queued measurement runs to done after a restart on the same SQLite file.
+* restart with queued work: the queued measurement runs to done after a restart on the same SQLite file;
+* step-and-scan mode, and cancelling a running sweep (the motor comes to rest).
 """
 
 from __future__ import annotations
@@ -212,3 +213,35 @@ def test_restart_with_queued_work_runs_the_queued_measurement(rig_process: RigPr
     finally:
         svc.stop()
         rig.close()
+
+
+def test_step_and_scan_mode(hil: tuple[RigProcess, httpx.Client]) -> None:
+    _, client = hil
+    req = {
+        "target": "cylinder",
+        "sweep": {
+            "mode": "step",
+            "start_deg": -10,
+            "stop_deg": 50,
+            "step_deg": 4,
+            "speed_deg_s": 30,
+            "scans_per_step": 2,
+        },
+    }
+    mid = client.post("/api/v1/measurements", json=req, headers=AUTH).json()["id"]
+    body = _wait(client, mid, {"done", "failed"})
+    assert body["state"] == "done", body["error"]
+    res = body["result"]
+    assert res["sweep"]["mode"] == "step" and res["sweep"]["scans_in_sweep"] >= 16 * 2
+    _check_cylinder(res)
+
+
+def test_cancel_a_running_sweep_stops_the_motor(hil: tuple[RigProcess, httpx.Client]) -> None:
+    sim, client = hil
+    mid = client.post("/api/v1/measurements", json=FAST, headers=AUTH).json()["id"]
+    _wait_sweeping(client, mid, 5.0)
+    assert client.post(f"/api/v1/measurements/{mid}/cancel", headers=AUTH).status_code == 200
+    body = _wait(client, mid, {"done", "failed", "cancelled"})
+    assert body["state"] == "cancelled" and body["error"] == "cancelled by request"
+    assert sim.wait_motor_at_rest()["velocity_actual"] == 0
+    assert body["has_raw"]

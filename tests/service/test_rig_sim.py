@@ -2,8 +2,8 @@
 
 * the simulated rig in its own process (scanner on TCP, drive on a socketcand CAN bus, one
   clock) and the service pointed at its URLs like a real rig, driven over HTTP;
-* on an in-process simulated rig: step-and-scan, cancel, the elbow target, an empty region of
-  interest. The fault tests with the rig in its own process are in ``test_hil_faults.py``.
+* on an in-process simulated rig: the elbow target, an empty region of interest. Step-and-scan,
+  cancel and the fault tests, with the rig in its own process, are in ``test_hil_faults.py``.
 """
 
 from __future__ import annotations
@@ -20,7 +20,6 @@ import httpx
 import numpy as np
 import pytest
 
-from drivers.servo import cia402
 from service import mcaplog
 from service.api import ServerThread, create_app
 from service.config import parse_config, parse_toml
@@ -172,42 +171,6 @@ def _wait_sweeping(client: httpx.Client, mid: str, beta_deg: float) -> None:
             return
         time.sleep(0.02)
     raise AssertionError("the sweep never got going")
-
-
-def test_step_and_scan_mode(sim_service: tuple[Any, Any, httpx.Client]) -> None:
-    _, _, client = sim_service
-    req = {
-        "target": "cylinder",
-        "sweep": {
-            "mode": "step",
-            "start_deg": -10,
-            "stop_deg": 50,
-            "step_deg": 4,
-            "speed_deg_s": 30,
-            "scans_per_step": 2,
-        },
-    }
-    mid = client.post("/api/v1/measurements", json=req, headers=AUTH).json()["id"]
-    body = _wait(client, mid, {"done", "failed"})
-    assert body["state"] == "done", body["error"]
-    res = body["result"]
-    assert res["sweep"]["mode"] == "step" and res["sweep"]["scans_in_sweep"] >= 16 * 2
-    _check_cylinder(res)
-
-
-def test_cancel_a_running_sweep_stops_the_motor(sim_service: tuple[Any, Any, httpx.Client]) -> None:
-    _, rig, client = sim_service
-    mid = client.post("/api/v1/measurements", json=FAST, headers=AUTH).json()["id"]
-    _wait_sweeping(client, mid, 5.0)
-    assert client.post(f"/api/v1/measurements/{mid}/cancel", headers=AUTH).status_code == 200
-    body = _wait(client, mid, {"done", "failed", "cancelled"})
-    assert body["state"] == "cancelled" and body["error"] == "cancelled by request"
-    drive = rig.sim.drive
-    end = time.monotonic() + 10
-    while time.monotonic() < end and drive.read(cia402.VELOCITY_ACTUAL) != 0:
-        time.sleep(0.02)
-    assert drive.read(cia402.VELOCITY_ACTUAL) == 0
-    assert body["has_raw"]
 
 
 def test_elbow_target_on_the_simulated_elbow(tmp_path: Path) -> None:
