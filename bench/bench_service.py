@@ -123,6 +123,7 @@ async def _load(
     server: list[float] | None = None,
     wait_go: bool = False,
     client_lag: list[float] | None = None,
+    by_path: dict[str, list[float]] | None = None,
 ) -> tuple[list[float], int, int, float]:
     """``clients`` concurrent clients for ``duration`` s; returns latencies, errors, requests and the
     time the clients took to open their connections (warm-up, not counted in the latencies).
@@ -174,6 +175,8 @@ async def _load(
                 except httpx.HTTPError:
                     ok = False
                 latencies.append(time.perf_counter() - t)
+                if by_path is not None:
+                    by_path.setdefault(path, []).append(latencies[-1])
                 requests += 1
                 if not ok:
                     errors += 1
@@ -200,6 +203,7 @@ def _load_processes(
     processes: int = 4,
     server: list[float] | None = None,
     client_lag: list[float] | None = None,
+    by_path: dict[str, list[float]] | None = None,
 ) -> tuple[list[float], int, int, float]:
     """The clients spread over a few load processes (one Python process cannot drive 100 clients
     without its own event loop becoming the bottleneck it is meant to measure)."""
@@ -239,6 +243,9 @@ def _load_processes(
         out, _ = p.communicate(timeout=duration + 120)
         r = json.loads(out)
         lat += r["latencies"]
+        if by_path is not None:
+            for k, v in r["by_path"].items():
+                by_path.setdefault(k, []).extend(v)
         if server is not None:
             server += r["server_ms"]
         if client_lag is not None:
@@ -347,10 +354,11 @@ def bench_rest(clients: int, duration: float, interval: float, args_processes: i
             paths.append(f"/api/v1/measurements/{mid}")
             server_ms: list[float] = []
             client_lag: list[float] = []
+            by_path: dict[str, list[float]] = {}
             lag0 = _loop_lag_buckets(base)
             cpu0, t0 = _cpu_s(proc.pid), time.monotonic()
             lat, errors, n, warmup_s = _load_processes(
-                base, paths, clients, duration, interval, args_processes, server=server_ms, client_lag=client_lag
+                base, paths, clients, duration, interval, args_processes, server_ms, client_lag, by_path
             )
             sweep_cpu = (_cpu_s(proc.pid) - cpu0) / (time.monotonic() - t0)
             lag1 = _loop_lag_buckets(base)
@@ -381,6 +389,9 @@ def bench_rest(clients: int, duration: float, interval: float, args_processes: i
         "server_max_ms": float(np.nanmax(server_ms)),
         "client_lag_p99_ms": float(np.percentile(client_lag, 99)),
         "server_cpu": sweep_cpu,
+        "p99_by_path_ms": {
+            k.replace(f"/{mid}", "/{id}"): float(np.percentile(np.asarray(v) * 1e3, 99)) for k, v in by_path.items()
+        },
         "quiet_cpu": quiet_cpu,
         "quiet_cpu_ms_per_request": quiet_cpu_per_req * 1e3,
         "client_lag_max_ms": float(np.max(client_lag)),
@@ -419,10 +430,19 @@ def main(argv: list[str] | None = None) -> int:
         w = json.loads(args.load_worker)
         srv: list[float] = []
         lag: list[float] = []
+        by_path: dict[str, list[float]] = {}
         lat, err, n, warm = asyncio.run(
-            _load(w["base"], w["paths"], w["clients"], w["duration"], w["interval"], srv, wait_go=True, client_lag=lag)
+            _load(w["base"], w["paths"], w["clients"], w["duration"], w["interval"], srv, True, lag, by_path)
         )
-        out = {"latencies": lat, "errors": err, "requests": n, "warmup_s": warm, "server_ms": srv, "client_lag_ms": lag}
+        out = {
+            "latencies": lat,
+            "errors": err,
+            "requests": n,
+            "warmup_s": warm,
+            "server_ms": srv,
+            "client_lag_ms": lag,
+            "by_path": by_path,
+        }
         print(json.dumps(out))
         return 0
     print(f"machine: {os.cpu_count()} cores, Python {sys.version.split()[0]}")
@@ -448,6 +468,7 @@ def main(argv: list[str] | None = None) -> int:
             f"p50 {r['server_p50_ms']:.2f} ms, p99 {r['server_p99_ms']:.2f} ms, max {r['server_max_ms']:.0f} ms; "
             f"the service process used {r['server_cpu'] * 100:.0f} % of a core (rig idle, same load: "
             f"{r['quiet_cpu'] * 100:.0f} %, {r['quiet_cpu_ms_per_request']:.2f} ms CPU per request); "
+            f"p99 by endpoint: {', '.join(f'{k} {v:.0f} ms' for k, v in r['p99_by_path_ms'].items())}; "
             f"the API's event loop (20 ms sleeps): {_lag_text(r['server_lag'])}; the load processes' own loops: "
             f"late by p99 {r['client_lag_p99_ms']:.1f} ms, max {r['client_lag_max_ms']:.0f} ms; "
             f"the {r['clients']} connections took {r['warmup_s']:.2f} s to open; "
