@@ -282,16 +282,18 @@ def create_app(service: Service, manage_lifecycle: bool = True) -> FastAPI:
         "fit_defaults": cfg.fit.model_dump(mode="json"),
         "sim": cfg.sim.model_dump(mode="json") if cfg.sim is not None else None,
     }
-    rig_live: list[Any] = [-1.0, {}]  # (monotonic time, rig_info()) of the last device query
+    rig_live: list[Any] = [-1e9, {}]  # (monotonic time, rig_info()) of the last device query
+    rig_refresh = asyncio.Lock()
 
     @api.get("/rig", tags=["rig"], response_class=_JsonBytes)
     async def rig() -> Response:
         """Configuration and device state. The device part is read at most every 0.25 s (on a
         worker thread, as a driver may block); requests in between get that reading."""
-        now = time.monotonic()
-        if now - rig_live[0] >= 0.25:
-            rig_live[1] = await run_in_threadpool(service.rig_info)
-            rig_live[0] = time.monotonic()
+        if time.monotonic() - rig_live[0] >= 0.25:
+            async with rig_refresh:  # one device query for all the requests that found it stale
+                if time.monotonic() - rig_live[0] >= 0.25:
+                    rig_live[1] = await run_in_threadpool(service.rig_info)
+                    rig_live[0] = time.monotonic()
         info = {
             **rig_static,
             "write_enabled": service.token() is not None,

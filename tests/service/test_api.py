@@ -330,3 +330,25 @@ def test_responses_carry_the_app_time(served: tuple[httpx.Client, GatedMeasure, 
         assert time.monotonic() < end, "the event-loop lag watcher never observed"
         time.sleep(0.05)
     assert "lrms_event_loop_lag_seconds_count" in client.get("/metrics").text
+
+
+def test_rig_state_follows_the_devices(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """GET /rig re-reads the device state (at most every 0.25 s): a change shows in a later poll."""
+    monkeypatch.delenv(TOKEN_ENV, raising=False)
+    state = {"scanner": {"connected": False}}
+    calls = [0]
+
+    def rig_info() -> dict[str, Any]:
+        calls[0] += 1
+        return {"scanner": dict(state["scanner"])}
+
+    svc = Service(_config(tmp_path), GatedMeasure(), rig_info=rig_info)
+    with ServerThread(create_app(svc)) as srv, httpx.Client(base_url=srv.url, timeout=10.0) as client:
+        first = client.get("/api/v1/rig").json()
+        assert first["scanner"] == {"connected": False} and first["name"] == svc.config.name
+        state["scanner"] = {"connected": True}
+        end = time.monotonic() + 10.0
+        while client.get("/api/v1/rig").json()["scanner"] != {"connected": True}:
+            assert time.monotonic() < end, "GET /rig never showed the new device state"
+            time.sleep(0.05)
+        assert calls[0] >= 2
