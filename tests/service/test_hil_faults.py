@@ -12,6 +12,7 @@ faults injected through its stdin control channel, the service driven over HTTP.
 from __future__ import annotations
 
 import json
+import socket
 import subprocess
 import sys
 import time
@@ -186,33 +187,94 @@ def test_rig_process_killed_mid_sweep_reports_that_the_motor_stop_failed(
     assert aborted and aborted[0]["motor_stop_error"] in body["error"], aborted
 
 
+LRMS_SERVE = [sys.executable, "-m", "service.cli.main", "serve"]
+
+
+def _serve(config: Path, port: int) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [*LRMS_SERVE, "--config", str(config), "--port", str(port), "--log-level", "warning"],
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def _client_of(proc: subprocess.Popen[str], url: str) -> httpx.Client:
+    """A client once ``lrms serve`` answers (the process must stay alive meanwhile)."""
+    end = time.monotonic() + 60
+    while time.monotonic() < end:
+        try:
+            httpx.get(f"{url}/healthz", timeout=5)
+            return httpx.Client(base_url=url, timeout=30)
+        except httpx.HTTPError:
+            assert proc.poll() is None, proc.communicate()
+            time.sleep(0.2)
+    raise AssertionError("lrms serve did not answer")
+
+
 def test_restart_with_queued_work_runs_the_queued_measurement(rig_process: RigProcess, tmp_path: Path) -> None:
-    cfg = _config(rig_process.urls, tmp_path)
+    """``lrms serve`` (its own process) on the rig process; stopped (SIGTERM) mid-sweep with a
+    measurement queued, started again on the same SQLite file: the queued one runs to done."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    config = tmp_path / "rig.toml"
+    urls = rig_process.urls
+    config.write_text(
+        f"""
+        name = "hil"
+        [scanner]
+        url = "{urls["scanner_url"]}"
+        [motor]
+        url = "{urls["motor_url"]}"
+        [storage]
+        dir = "{tmp_path}"
+        [auth]
+        token = "{TOKEN}"
+        [fit]
+        roi_min_m = [0.12, 2.30, -0.09]
+        roi_max_m = [0.44, 2.76, 0.75]
+        """.replace("\n        ", "\n")
+    )
+    url = f"http://127.0.0.1:{port}"
     slow = {"target": "cylinder", "sweep": {"speed_deg_s": 5.0}}
-    svc, rig = build_service(cfg)
+    proc = _serve(config, port)
     try:
-        with ServerThread(create_app(svc)) as srv, httpx.Client(base_url=srv.url, timeout=30) as client:
+        with _client_of(proc, url) as client:
             first = client.post("/api/v1/measurements", json=slow, headers=AUTH).json()["id"]
             queued = client.post("/api/v1/measurements", json=FAST, headers=AUTH).json()["id"]
             _wait_sweeping(client, first, 0.0)
             assert client.get(f"/api/v1/measurements/{queued}").json()["state"] == "queued"
     finally:
-        svc.stop()  # the service stops mid-sweep with work queued
-        rig.close()
+        proc.terminate()  # the service stops mid-sweep with work queued
+        proc.wait(30)
+    assert proc.returncode is not None
     assert rig_process.wait_motor_at_rest()["velocity_actual"] == 0
-    svc, rig = build_service(cfg)  # the same SQLite file
+    # the drive may have faulted on the lost master heartbeat (0x8130) when the service exited:
+    # the operator's reset, as after any fault (docs/service.md, failure semantics)
+    reset = subprocess.run(
+        [sys.executable, "-m", "service.cli.main", "motor", "--motor", urls["motor_url"], "reset"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert reset.returncode == 0, reset.stderr
+    assert rig_process.command("drive_state")["state"] != "FAULT"
+    proc = _serve(config, port)  # the same SQLite file
     try:
-        with ServerThread(create_app(svc)) as srv, httpx.Client(base_url=srv.url, timeout=30) as client:
-            interrupted = client.get(f"/api/v1/measurements/{first}").json()
-            assert interrupted["state"] in ("cancelled", "failed"), interrupted
+        with _client_of(proc, url) as client:
             body = _wait(client, queued, {"done", "failed"})
             assert body["state"] == "done", body["error"]
             res = body["result"]
             assert res["model"] == "cylinder" and abs(res["diameter_m"] - 0.1375) < 2e-3, res
             assert res["uncertainty"]["d_min_m"] <= 0.1375 <= res["uncertainty"]["d_max_m"], res
+            interrupted = client.get(f"/api/v1/measurements/{first}").json()
+            assert interrupted["state"] in ("cancelled", "failed") and interrupted["error"], interrupted
     finally:
-        svc.stop()
-        rig.close()
+        proc.terminate()
+        proc.wait(30)
 
 
 def test_step_and_scan_mode(hil: tuple[RigProcess, httpx.Client]) -> None:
