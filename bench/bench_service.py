@@ -22,6 +22,7 @@ import argparse
 import asyncio
 import gc
 import os
+import random
 import socket
 import subprocess
 import sys
@@ -124,6 +125,7 @@ async def _load(
     wait_go: bool = False,
     client_lag: list[float] | None = None,
     by_path: dict[str, list[float]] | None = None,
+    starts: list[float] | None = None,
 ) -> tuple[list[float], int, int, float]:
     """``clients`` concurrent clients for ``duration`` s; returns latencies, errors, requests and the
     time the clients took to open their connections (warm-up, not counted in the latencies).
@@ -163,6 +165,8 @@ async def _load(
         async def worker(i: int) -> None:
             nonlocal errors, requests
             j = i
+            if interval > 0:  # HMIs are not synchronised: first polls spread over one interval
+                await asyncio.sleep(interval * random.random())
             while time.monotonic() < end:
                 path = paths[j % len(paths)]
                 j += 1
@@ -175,6 +179,8 @@ async def _load(
                 except httpx.HTTPError:
                     ok = False
                 latencies.append(time.perf_counter() - t)
+                if starts is not None:
+                    starts.append(time.time() - latencies[-1])
                 if by_path is not None:
                     by_path.setdefault(path, []).append(latencies[-1])
                 requests += 1
@@ -204,6 +210,7 @@ def _load_processes(
     server: list[float] | None = None,
     client_lag: list[float] | None = None,
     by_path: dict[str, list[float]] | None = None,
+    starts: list[float] | None = None,
 ) -> tuple[list[float], int, int, float]:
     """The clients spread over a few load processes (one Python process cannot drive 100 clients
     without its own event loop becoming the bottleneck it is meant to measure)."""
@@ -246,6 +253,8 @@ def _load_processes(
         if by_path is not None:
             for k, v in r["by_path"].items():
                 by_path.setdefault(k, []).extend(v)
+        if starts is not None:
+            starts += r["starts"]
         if server is not None:
             server += r["server_ms"]
         if client_lag is not None:
@@ -260,6 +269,19 @@ def _cpu_s(pid: int) -> float:
     """User + system CPU seconds of process ``pid`` so far (Linux ``/proc``)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _bursts(starts: list[float], latencies: list[float], gap_s: float = 0.1) -> tuple[int, list[float]]:
+    """The slowest 1 % of requests and the bursts they were sent in (start times more than
+    ``gap_s`` apart; each burst as its start, s after the first request): a few bursts mean a few
+    stalls that hit every client at once."""
+    lat = np.asarray(latencies)
+    t = np.asarray(starts)
+    slow = np.sort(t[lat >= np.percentile(lat, 99)])
+    if slow.size == 0:
+        return 0, []
+    firsts = np.concatenate([slow[:1], slow[1:][np.diff(slow) > gap_s]])
+    return int(slow.size), [float(v) for v in firsts - t.min()]
 
 
 def _loop_lag_buckets(base: str) -> dict[float, float]:
@@ -355,10 +377,11 @@ def bench_rest(clients: int, duration: float, interval: float, args_processes: i
             server_ms: list[float] = []
             client_lag: list[float] = []
             by_path: dict[str, list[float]] = {}
+            starts: list[float] = []
             lag0 = _loop_lag_buckets(base)
             cpu0, t0 = _cpu_s(proc.pid), time.monotonic()
             lat, errors, n, warmup_s = _load_processes(
-                base, paths, clients, duration, interval, args_processes, server_ms, client_lag, by_path
+                base, paths, clients, duration, interval, args_processes, server_ms, client_lag, by_path, starts
             )
             sweep_cpu = (_cpu_s(proc.pid) - cpu0) / (time.monotonic() - t0)
             lag1 = _loop_lag_buckets(base)
@@ -389,6 +412,7 @@ def bench_rest(clients: int, duration: float, interval: float, args_processes: i
         "server_max_ms": float(np.nanmax(server_ms)),
         "client_lag_p99_ms": float(np.percentile(client_lag, 99)),
         "server_cpu": sweep_cpu,
+        "slow_bursts": _bursts(starts, lat),
         "p99_by_path_ms": {
             k.replace(f"/{mid}", "/{id}"): float(np.percentile(np.asarray(v) * 1e3, 99)) for k, v in by_path.items()
         },
@@ -431,8 +455,9 @@ def main(argv: list[str] | None = None) -> int:
         srv: list[float] = []
         lag: list[float] = []
         by_path: dict[str, list[float]] = {}
+        starts: list[float] = []
         lat, err, n, warm = asyncio.run(
-            _load(w["base"], w["paths"], w["clients"], w["duration"], w["interval"], srv, True, lag, by_path)
+            _load(w["base"], w["paths"], w["clients"], w["duration"], w["interval"], srv, True, lag, by_path, starts)
         )
         out = {
             "latencies": lat,
@@ -442,6 +467,7 @@ def main(argv: list[str] | None = None) -> int:
             "server_ms": srv,
             "client_lag_ms": lag,
             "by_path": by_path,
+            "starts": starts,
         }
         print(json.dumps(out))
         return 0
@@ -468,6 +494,8 @@ def main(argv: list[str] | None = None) -> int:
             f"p50 {r['server_p50_ms']:.2f} ms, p99 {r['server_p99_ms']:.2f} ms, max {r['server_max_ms']:.0f} ms; "
             f"the service process used {r['server_cpu'] * 100:.0f} % of a core (rig idle, same load: "
             f"{r['quiet_cpu'] * 100:.0f} %, {r['quiet_cpu_ms_per_request']:.2f} ms CPU per request); "
+            f"the slowest 1 % ({r['slow_bursts'][0]} requests) were sent in {len(r['slow_bursts'][1])} bursts "
+            f"(at {', '.join(f'{v:.1f}' for v in r['slow_bursts'][1][:10])} s); "
             f"p99 by endpoint: {', '.join(f'{k} {v:.0f} ms' for k, v in r['p99_by_path_ms'].items())}; "
             f"the API's event loop (20 ms sleeps): {_lag_text(r['server_lag'])}; the load processes' own loops: "
             f"late by p99 {r['client_lag_p99_ms']:.1f} ms, max {r['client_lag_max_ms']:.0f} ms; "
