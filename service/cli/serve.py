@@ -23,6 +23,7 @@ def run(args: argparse.Namespace) -> int:
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
     import logging
+    import signal
 
     import uvicorn
 
@@ -33,6 +34,14 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     cfg = load_config(args.config, storage_dir=args.data)
     svc, rig = build_service(cfg)
+
+    def terminated(signum: int, frame: object) -> None:
+        # uvicorn shuts down gracefully on SIGTERM, then raises the signal again with the handler
+        # it found (this one): exit through ``finally`` so the rig is closed (the drive stops
+        # watching our heartbeat instead of faulting when it ends)
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, terminated)
     try:
         app = create_app(svc)
         where = "simulated rig" if cfg.is_sim else f"scanner {rig.scanner_url}, motor {rig.motor_url}"
