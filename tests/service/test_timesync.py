@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from numpy.typing import NDArray
 
 from service.timesync import ClockSync, ClockSyncError
 
@@ -11,7 +12,9 @@ DRIFT = 80e-6  # the device crystal runs 80 ppm slow against the host
 D_MIN = 0.4e-3  # the smallest transmission delay (s)
 
 
-def _pairs(n: int, rng: np.random.Generator, start_us: int = (1 << 32) - 5_000_000, period_us: int = 20_000):
+def _pairs(
+    n: int, rng: np.random.Generator, start_us: int = (1 << 32) - 5_000_000, period_us: int = 20_000
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
     """Device transmission times (raw uint32, wrapping) and host receive times."""
     dev = start_us + period_us * np.arange(n, dtype=np.int64)
     jitter = rng.exponential(1.5e-3, n)  # transmission/scheduling delay, one-sided
