@@ -22,7 +22,7 @@ def _pairs(
     jitter[spikes] += rng.uniform(5e-3, 40e-3, int(spikes.sum()))
     t_rel = (dev - start_us) * 1e-6
     true_send = 1_700_000_000.0 + (1 + DRIFT) * t_rel
-    return dev % (1 << 32), true_send, true_send + D_MIN + jitter
+    return dev % (1 << 32), np.asarray(true_send, dtype=np.float64), true_send + D_MIN + jitter
 
 
 def test_offset_drift_and_wrap_with_jitter() -> None:
