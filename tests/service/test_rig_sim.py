@@ -44,10 +44,13 @@ def _wait(client: httpx.Client, mid: str, states: set[str], timeout: float = 90.
     raise AssertionError(f"measurement {mid} did not reach {states}: {body}")
 
 
-def _check_cylinder(result: dict[str, Any]) -> None:
+def _check_cylinder(result: dict[str, Any], gum: bool = True) -> None:
+    """Truth in the critical-point interval, error within 2 mm, axis right; with ``gum`` also within
+    4 GUM standard uncertainties (which leave out timing errors: docs/service.md, known limits)."""
     u = result["uncertainty"]
     assert u["d_min_m"] <= TRUTH_D <= u["d_max_m"], result  # the seed's critical-point interval (k = 3)
-    assert abs(result["diameter_m"] - TRUTH_D) <= 4 * u["std_m"], result  # and the GUM standard uncertainty
+    if gum:
+        assert abs(result["diameter_m"] - TRUTH_D) <= 4 * u["std_m"], result  # the GUM standard uncertainty
     assert abs(result["diameter_m"] - TRUTH_D) < 2e-3
     assert np.allclose(result["axis_point_m"][:2], [0.28, 2.53], atol=5e-3)
     assert abs(result["axis_direction"][2]) > 0.999
@@ -233,3 +236,16 @@ def test_nothing_in_the_region_of_interest_fails_with_the_reason_and_the_counts(
     assert body["state"] == "failed" and "no points inside the region of interest" in body["error"]
     assert body["result"]["sweep"]["scans_received"] > 0 and body["result"]["mapping"]["points"] > 0
     assert body["has_raw"] and body["has_cloud"] is False
+
+
+def test_bad_elbow_options_are_a_422_with_the_reason(sim_service: tuple[Any, Any, httpx.Client]) -> None:
+    _, _, client = sim_service
+    bad = [
+        ({"target": "elbow", "options": {"ratio": 0.2}}, "ratio"),
+        ({"target": "elbow", "options": {"degree_deg": -5}}, "degree_deg"),
+        ({"target": "cylinder", "options": {"flange": True}}, "apply to target 'elbow' only"),
+    ]
+    for req, reason in bad:
+        r = client.post("/api/v1/measurements", json=req, headers=AUTH)
+        assert r.status_code == 422 and reason in r.json()["message"], r.text
+    assert client.get("/api/v1/measurements").json() == []  # nothing was queued
