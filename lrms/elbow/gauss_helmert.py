@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
+from scipy.special import i0e, i1e
 
 from lrms.elbow.model import BEND, ElbowParams, as_points, euler_jacobian, evaluate_model
 from lrms.errors import FitError
@@ -102,6 +103,88 @@ def design_matrices(
     if has_flange:
         cols.append(-ev.q[:, None] / 2)
     return ev.f, np.hstack(cols), b
+
+
+def rice_excess(radius: FloatArray | float, sigma: FloatArray | float) -> FloatArray:
+    """``E[sqrt((R + x)^2 + y^2)] - R`` for ``x, y ~ N(0, sigma^2)``: the mean excess distance from
+    a circle's centre of a noisy point on it (the Rice distribution's mean minus ``R``).
+
+    ``sigma sqrt(pi/2) L_1/2(-R^2 / (2 sigma^2)) - R``, with the Laguerre function written through
+    the exponentially scaled Bessel functions; ``sigma^2/(2R) + sigma^4/(8R^3)`` where that is exact
+    to round-off (``sigma < 1e-3 R``). Zero where ``sigma`` is zero.
+    """
+    r = np.asarray(radius, dtype=np.float64)
+    sg = np.asarray(sigma, dtype=np.float64)
+    r, sg = np.broadcast_arrays(r, sg)
+    small = sg < 1e-3 * r
+    out = np.asarray(sg**2 / (2 * r) + sg**4 / (8 * r**3), dtype=np.float64)
+    big = ~small
+    if np.any(big):
+        rb, sb = r[big], sg[big]
+        z = rb**2 / (4 * sb**2)
+        out[big] = sb * math.sqrt(math.pi / 2) * ((1 + 2 * z) * i0e(z) + 2 * z * i1e(z)) - rb
+    return out
+
+
+def curvature_offset(
+    points: ArrayLike, params: ElbowParams, var: FloatArray | float | None = None, cov: FloatArray | None = None
+) -> FloatArray:
+    """Expected orthogonal distance ``E[f]`` of a noisy observation of each point's foot point.
+
+    A point on a curved surface observed with zero-mean noise lies on average outside a convex
+    surface: ``E[f] = 1/2 tr(H Q)`` to second order, ``H`` the Hessian of the signed distance (the
+    principal curvatures ``k1 = 1/Rq`` around the tube and ``k2 = cos(phi)/rho`` along the bend,
+    ``rho`` the foot point's distance from the torus axis; ``k2 = 0`` on the legs) and ``Q`` the
+    point's covariance. For isotropic noise (``var``: a variance per point or one for all) the term
+    around the tube is the exact Rice mean (:func:`rice_excess`, exact on a cylinder for Gaussian
+    noise of any size) and the term along the bend ``var k2 / 2``; for ``cov`` ``(n, 3, 3)`` both are
+    second order. ``rho`` is kept >= 2 standard deviations (only sharp elbows come nearer the axis,
+    and the axis gate leaves those points out of the fit).
+    """
+    pts = as_points(points)
+    m = (pts - params.center) @ params.rot.T
+    ev = evaluate_model(m, params.A, params.D, params.degree, params.Df)
+    s = np.maximum(ev.s, 1e-300)
+    dz = (ev.zp - params.A) / s
+    t2 = np.stack([-np.sin(ev.phi), np.zeros_like(ev.phi), np.cos(ev.phi)], axis=1)
+    if cov is not None:
+        g = np.stack([dz * np.cos(ev.phi), m[:, 1] / s, dz * np.sin(ev.phi)], axis=1)
+        t1 = np.cross(g, t2)
+        t1w, t2w = t1 @ params.rot, t2 @ params.rot
+        v1 = np.einsum("ni,nij,nj->n", t1w, cov, t1w)
+        v2 = np.einsum("ni,nij,nj->n", t2w, cov, t2w)
+    else:
+        v = np.broadcast_to(np.asarray(0.0 if var is None else var, dtype=np.float64), ev.f.shape)
+        v1 = v2 = v
+    sd = np.sqrt(np.maximum(v2, 0.0))
+    rho = np.maximum(params.A + ev.radius * dz, 2.0 * sd)
+    k2 = np.where(ev.portion == BEND, dz / np.maximum(rho, 1e-300), 0.0)
+    tube = v1 / (2 * ev.radius) if cov is not None else rice_excess(ev.radius, np.sqrt(np.maximum(v1, 0.0)))
+    return np.asarray(tube + 0.5 * k2 * v2)
+
+
+def noise_from_residual_sd(sd: float, radius: float) -> float:
+    """The coordinate noise ``sigma`` whose orthogonal distances to a tube of radius ``radius`` have
+    standard deviation ``sd``.
+
+    The distance of a noisy point from a cylinder's axis is Rice distributed; its variance is
+    ``R^2 + 2 sigma^2 - E[s]^2`` (``sigma^2 - sigma^4/(4R^2)`` for small noise, down to
+    ``(2 - pi/2) sigma^2`` for noise far above ``R``), which this inverts. ``sd`` itself when the
+    relation cannot be inverted (``sd`` beyond what any noise gives).
+    """
+    if not (sd > 0 and math.isfinite(sd)) or radius <= 0:
+        return max(sd, 0.0) if math.isfinite(sd) else 0.0
+
+    def var_f(sg: float) -> float:
+        es = radius + float(rice_excess(radius, sg))
+        return radius**2 + 2 * sg**2 - es**2
+
+    lo, hi = sd, 4.0 * sd
+    if var_f(lo) > sd**2 or var_f(hi) < sd**2:
+        return sd
+    from scipy.optimize import brentq
+
+    return float(brentq(lambda sg: var_f(sg) - sd**2, lo, hi, xtol=1e-6 * sd))
 
 
 def apply_update(params: ElbowParams, delta: ArrayLike, ratio: float | None, flange: bool) -> ElbowParams:
@@ -224,6 +307,7 @@ def fit_elbow(
     robust_only: bool = False,
     fallback: bool = True,
     axis_gate: float = AXIS_GATE,
+    curvature_correction: bool = True,
 ) -> ElbowFit:
     """Adjust the elbow model to ``points`` (n, 3) from the initial values ``init``.
 
@@ -244,6 +328,11 @@ def fit_elbow(
     orthogonal distance of a noisy point is biased by about ``sigma^2 / (2 rho)``, all with one
     sign (measured on joint f of Table 1: a bend radius 1 mm short at 1 mm noise without the
     gate). The set of points used is fixed when the least-squares iterations start.
+    ``curvature_correction``: subtract from each orthogonal distance its expected value under the
+    noise (:func:`curvature_offset`: a noisy point on a curved surface lies on average outside a
+    convex one, which inflates ``D`` by about ``sigma^2 / R`` and shifts ``A`` and the centre);
+    the noise is ``cov`` when given, else the one that explains the current residual spread
+    (:func:`noise_from_residual_sd`, re-estimated every iteration).
     Raises :class:`FitError` for too few points, singular normal equations, no convergence, or a
     degenerate solution (``A < 0.45 D``).
     """
@@ -277,16 +366,30 @@ def fit_elbow(
     sig_r = 0.0
     f_cache: FloatArray | None = None  # f at the observations for the current parameters
     f_trial = np.zeros(n)
+    corr: FloatArray | float = 0.0  # expected orthogonal distance of the noisy points (curvature_correction)
+    var_hat: float | None = None
     for it in range(1, max_iter + 1):
         f0, amat, b = design_matrices(l0, params, ratio, has_flange)
-        w = f0 + np.einsum("ij,ij->i", b, pts - l0)
+        if curvature_correction:
+            if f_cache is None:
+                f_cache = f0 if l0 is pts else _f_obs(pts, params)
+            if q is None:
+                if var_hat is None or robust:
+                    sd_f = 1.4826 * float(np.median(np.abs(f_cache - corr)))
+                else:
+                    sd_f = math.sqrt(var_hat)
+                var_hat = noise_from_residual_sd(sd_f, params.D / 2) ** 2
+                corr = curvature_offset(pts, params, var_hat)
+            else:
+                corr = curvature_offset(pts, params, q if q.ndim == 1 else None, q if q.ndim == 3 else None)
+        w = f0 + np.einsum("ij,ij->i", b, pts - l0) - corr
         mm = _weights_denominator(b, q)
         if np.any(mm <= 0) or not np.all(np.isfinite(mm)):
             raise FitError("degenerate linearization (zero gradient of the condition)")
         sqm = np.sqrt(mm)
         if f_cache is None:
             f_cache = f0 if l0 is pts else _f_obs(pts, params)
-        fo = f_cache
+        fo = f_cache - corr
         z = np.abs(fo) / sqm
         if robust or it == 1:  # the set of points used is frozen once the least-squares phase starts
             sig_r = 1.4826 * float(np.median(z))
@@ -319,7 +422,7 @@ def fit_elbow(
             trial = apply_update(params, step * delta, ratio, has_flange)
             if _valid(trial):
                 f_trial = _f_obs(pts, trial)
-                if _cost((f_trial / sqm)[use], hub) <= cost0 * (1 + 1e-9) + floor:
+                if _cost(((f_trial - corr) / sqm)[use], hub) <= cost0 * (1 + 1e-9) + floor:
                     break
             step *= 0.5
             rigorous = False
@@ -344,6 +447,8 @@ def fit_elbow(
         kk = np.where(use, -(1.0 / mm) * (amat @ (step * delta) + w), 0.0)
         v = kk[:, None] * _qbt(b, q)
         vpv = float(np.sum(kk * kk * mm))
+        if curvature_correction and q is None:
+            var_hat = vpv / max(int(np.count_nonzero(use)) - u, 1)
         l0 = pts + v if rigorous else pts
         d = step * np.abs(delta)
         lin = np.concatenate([d[:3], d[6:]])
@@ -364,7 +469,7 @@ def fit_elbow(
     if not converged and not robust_only and fallback:
         # the Gauss-Newton steps stall on the piecewise-smooth cost: finish with a trust-region
         # least-squares solver on the same residuals (orthogonal distances over sqrt(M))
-        params, vpv = _trust_region_polish(pts, params, ratio, has_flange, q, use, max_iter)
+        params, vpv = _trust_region_polish(pts, params, ratio, has_flange, q, use, max_iter, corr)
         converged = True
         solver = "gauss-helmert+trf"
         it += 1
@@ -429,6 +534,7 @@ def _trust_region_polish(
     q: FloatArray | None,
     use: NDArray[np.bool_],
     max_iter: int,
+    offset: FloatArray | float = 0.0,
 ) -> tuple[ElbowParams, float]:
     """Minimize the same weighted orthogonal distances with :func:`scipy.optimize.least_squares`
     (trust region reflective, analytic Jacobian); returns the parameters and ``v^T P v``."""
@@ -436,6 +542,7 @@ def _trust_region_polish(
 
     sel = pts[use]
     qs = None if q is None else q[use]
+    off = np.broadcast_to(np.asarray(offset, dtype=np.float64), (pts.shape[0],))[use]
     _, _, b0 = design_matrices(sel, params, ratio, flange)
     sqm = np.sqrt(_weights_denominator(b0, qs))
     scale = max(params.D, 1e-6)
@@ -444,7 +551,7 @@ def _trust_region_polish(
         p = apply_update(params, x, ratio, flange)
         if not _valid(p):
             return np.full(sel.shape[0], 1e3 * scale)
-        return np.asarray(_f_obs(sel, p) / sqm)
+        return np.asarray((_f_obs(sel, p) - off) / sqm)
 
     def jac(x: FloatArray) -> FloatArray:
         p = apply_update(params, x, ratio, flange)
