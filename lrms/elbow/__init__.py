@@ -8,6 +8,7 @@ Typical use::
     print(fit.to_dict())
 """
 
+from lrms.elbow.bounds import MetricFloors, metric_floors, parameter_floor
 from lrms.elbow.gauss_helmert import ElbowFit, design_matrices, fit_elbow, param_names
 from lrms.elbow.initial import initial_values
 from lrms.elbow.model import (
@@ -25,6 +26,7 @@ from lrms.elbow.pipeline import canonical, fit_auto
 __all__ = [
     "ElbowFit",
     "ElbowParams",
+    "MetricFloors",
     "canonical",
     "condition",
     "condition_seed",
@@ -33,7 +35,9 @@ __all__ = [
     "fit_auto",
     "fit_elbow",
     "initial_values",
+    "metric_floors",
     "param_names",
+    "parameter_floor",
     "parse_degree",
     "parse_ratio",
     "portions",
