@@ -18,12 +18,14 @@ Reading of the seed:
   reported separately), delta_AD: RMSE of A and D (mm), each over the repetitions; a random pose
   per repetition. The model's two labellings of the legs describe the same surface; the one
   nearer the truth is compared.
-* Fits start from the automatic initial values (Section 2.2.2) with the ratio A/D free
-  (``--ratio fixed``: A/D fixed at the joint's type), except: Table 6 (noise of 10-40 % of D, for
-  which the automatic start is not built), the coverage study (10-360 deg, where a 10 deg sliver
-  holds no pipe end to start from) and Table 7 start from the truth perturbed by 3 mm, 1 deg and
-  5 %; so does any cell where the automatic start fails (marked "*"). A cell is "n/a" only if the
-  adjustment itself fails.
+* Fits start from the automatic initial values (Section 2.2.2 plus the global search of
+  :mod:`lrms.elbow.initial`; nothing from the truth) with the ratio A/D free (``--ratio fixed``:
+  A/D fixed at the joint's type). ``--start perturbed`` makes Table 6, the coverage study and
+  Table 7 start from the truth perturbed by 3 mm, 1 deg and 5 % instead (for comparison; those
+  cells are marked "*"). A repetition where the automatic pipeline fails (no start found, or the
+  adjustment failed or ended degenerate from every start) counts as failed, "(kf)" in the cell,
+  with the reasons listed under the table; there is no fallback to the truth. A cell is "n/a"
+  when every repetition failed.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ import argparse
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -98,6 +100,7 @@ class Cell:
     sigma_r: float = math.nan  # deg
     sigma_ad: float = math.nan  # mm
     d_k: float = math.nan  # RMSE of kappa (deg), the third rotation the seed does not have
+    reasons: list[str] = field(default_factory=list)  # why repetitions failed
 
 
 def _wrap_deg(x: FloatArray) -> FloatArray:
@@ -147,25 +150,22 @@ def run_cell(
     rng = np.random.default_rng(seed)
     et, er, ek, ead, st, sr, sad = [], [], [], [], [], [], []
     fails = 0
-    perturbed = not auto
+    reasons: list[str] = []
     for _ in range(reps):
         c, rot = random_pose(rng)
         j = make_joint(
             spec, D=D, center=c, rot=rot, coverage_deg=coverage, noise=noise_mm / 1e3, noise_kind=kind, rng=rng
         )
-        fit: ElbowFit | None = None
-        if auto:
-            try:
+        fit: ElbowFit
+        try:
+            if auto:
                 fit = fit_auto(j.points, ratio=ratio, flange=spec.flange, rng=np.random.default_rng(0))
-            except FitError:
-                fit = None
-        if fit is None:
-            try:
+            else:
                 fit = fit_elbow(j.points, _perturbed(j.truth), ratio=ratio, flange=spec.flange)
-                perturbed = True
-            except FitError:
-                fails += 1
-                continue
+        except FitError as exc:
+            fails += 1
+            reasons.append(str(exc))
+            continue
         dt, dr, dad = _errors(fit, j.truth)
         et.append(dt)
         er.append(dr[:2])  # omega, psi: the seed's two angles (they fix the torus axis)
@@ -185,11 +185,12 @@ def run_cell(
         rmse(ead),
         len(et),
         fails,
-        perturbed,
+        not auto,
         float(np.mean(st)) if st else math.nan,
         float(np.mean(sr)) if sr else math.nan,
         float(np.mean(sad)) if sad else math.nan,
         rmse(ek),
+        reasons,
     )
 
 
@@ -261,8 +262,25 @@ def table_tr(
         out[r] = cells
     print(f"cells at or below the seed's (ours rounded to the seed's 0.1 mm / 0.001 deg): {wins} of {total}")
     dk = [c.d_k for cs in out.values() for c in cs if c.n_ok]
-    print(f"kappa (third rotation, not in the seed): RMSE median {np.median(dk):.3f} deg, max {max(dk):.3f} deg")
+    if dk:
+        print(f"kappa (third rotation, not in the seed): RMSE median {np.median(dk):.3f} deg, max {max(dk):.3f} deg")
+    n_ok = sum(c.n_ok for cs in out.values() for c in cs)
+    n_all = sum(c.n_ok + c.n_fail for cs in out.values() for c in cs)
+    print(f"repetitions converged ({start}): {n_ok} of {n_all}")
+    _print_failures({f"{r}, +-{n:g} mm": c for r, cs in out.items() for n, c in zip(noises, cs, strict=True)})
     return out
+
+
+def _print_failures(cells: dict[str, Cell]) -> None:
+    """Why repetitions failed, cell by cell (the first reason of each kind)."""
+    for name, c in cells.items():
+        if c.reasons:
+            kinds: dict[str, int] = {}
+            for r in c.reasons:
+                r = r if len(r) <= 160 else r[:157] + "..."
+                kinds[r] = kinds.get(r, 0) + 1
+            text = "; ".join(f"{k} ({v}x)" for k, v in kinds.items())
+            print(f"  failed in {name}: {text}")
 
 
 def table5(cells0: dict[str, Cell], cells4: dict[str, list[Cell]], reps: int, kind: str, fixed: bool) -> None:
@@ -282,21 +300,37 @@ def table5(cells0: dict[str, Cell], cells4: dict[str, list[Cell]], reps: int, ki
     print(f"cells at or below the seed's (ours rounded to 0.1 mm): {wins} of {total}")
 
 
-def coverage_study(full: bool, reps: int, kind: str, plot: str | None) -> None:
+def coverage_study(full: bool, reps: int, kind: str, plot: str | None, auto: bool = True) -> None:
     covs = list(range(10, 361, 10)) if full else [10, 30, 60, 90, 120, 180, 270, 360]
     noises = list(range(0, 9)) if full else [0, 2, 4, 8]
-    print(f"\nCoverage study (Figures 12-14): joint a, D = 0.1 m, start: truth perturbed; {reps} reps, {kind} noise")
+    start = "automatic start" if auto else "start: truth perturbed"
+    print(f"\nCoverage study (Figures 12-14): joint a, D = 0.1 m, {start}; {reps} reps, {kind} noise")
     print("seed (read from the text): at >= 180 deg, dT < ~0.5 mm, dR < ~0.1 deg, dAD < ~1 mm")
+    print("a cell is the RMSE over the repetitions that converged; nan: none did (see the counts)")
     res = np.full((3, len(noises), len(covs)), np.nan)
+    n_ok = np.zeros((len(noises), len(covs)), dtype=int)
+    failed: dict[str, Cell] = {}
+    for i, n in enumerate(noises):
+        for k, cv in enumerate(covs):
+            cell = run_cell("a", 0.1, n, reps, kind, seed=7 * i + k, coverage=cv, auto=auto)
+            res[:, i, k] = [cell.d_t, cell.d_r, cell.d_ad]
+            n_ok[i, k] = cell.n_ok
+            if cell.reasons:
+                failed[f"{cv} deg, +-{n} mm"] = cell
     for q, what in enumerate(("dT (mm)", "dR (deg)", "dAD (mm)")):
-        if q == 0:
-            for i, n in enumerate(noises):
-                for k, cv in enumerate(covs):
-                    cell = run_cell("a", 0.1, n, reps, kind, seed=7 * i + k, coverage=cv, auto=False)
-                    res[:, i, k] = [cell.d_t, cell.d_r, cell.d_ad]
         print(f"\n{what:<10}" + "".join(f"{c:>8}" for c in covs))
         for i, n in enumerate(noises):
             print(f"+-{n} mm    " + "".join(f"{res[q, i, k]:>8.3f}" for k in range(len(covs))))
+    print(f"\nrepetitions converged ({start}, of {reps} per cell)")
+    print(f"{'conv.':<10}" + "".join(f"{c:>8}" for c in covs))
+    for i, n in enumerate(noises):
+        print(f"+-{n} mm    " + "".join(f"{n_ok[i, k]:>8d}" for k in range(len(covs))))
+    tot = n_ok[:, [k for k, c in enumerate(covs) if c >= 180]]
+    print(
+        f"repetitions converged: {int(n_ok.sum())} of {n_ok.size * reps}; at >= 180 deg: "
+        f"{int(tot.sum())} of {tot.size * reps}"
+    )
+    _print_failures(failed)
     if plot:
         import matplotlib
 
@@ -320,14 +354,16 @@ def coverage_study(full: bool, reps: int, kind: str, plot: str | None) -> None:
         print(f"plots written to {plot}/seed000_fig12.png .. fig14.png")
 
 
-def table7(reps: int, kind: str) -> None:
-    print(f"\nTable 7: mean a-posteriori standard deviations, D = 0.1 m, 1 mm {kind} noise ({reps} reps)")
+def table7(reps: int, kind: str, auto: bool = True) -> None:
+    start = "automatic start" if auto else "start: truth perturbed"
+    print(f"\nTable 7: mean a-posteriori standard deviations, D = 0.1 m, 1 mm {kind} noise ({reps} reps, {start})")
     print(f"{'joint':<8}{'coverage':>9}{'points':>8}{'sT mm':>10}{'sR deg':>10}{'sAD mm':>10}")
     for joint in ("a", "d"):
         for cv in (90, 180, 270, 360):
-            cell = run_cell(joint, 0.1, 1.0, reps, kind, seed=cv, coverage=cv, auto=False)
+            cell = run_cell(joint, 0.1, 1.0, reps, kind, seed=cv, coverage=cv, auto=auto)
             print(
                 f"{joint:<8}{cv:>9}{int(131 * cv):>8}{cell.sigma_t:>10.4f}{cell.sigma_r:>10.4f}{cell.sigma_ad:>10.4f}"
+                + (f"  ({cell.n_fail} of {reps} failed: {cell.reasons[0]})" if cell.n_fail else "")
             )
 
 
@@ -405,9 +441,16 @@ def main(argv: Sequence[str] | None = None) -> None:
         default="free",
         help="Tables 3-6: estimate A and D (free) or fix A/D at the joint's type (fixed)",
     )
+    ap.add_argument(
+        "--start",
+        choices=["auto", "perturbed"],
+        default="auto",
+        help="Table 6, coverage study, Table 7: automatic initial values (default) or the truth perturbed",
+    )
     args = ap.parse_args(argv)
     parts = set(args.only.split(","))
     fixed = args.ratio == "fixed"
+    auto = args.start == "auto"
     kinds = ["gauss", "uniform"] if args.noise_kind == "both" else [args.noise_kind]
     t0 = time.perf_counter()
     for kind in kinds:
@@ -423,7 +466,6 @@ def main(argv: Sequence[str] | None = None) -> None:
                 }
                 table5(cells0, t4, args.reps, kind, fixed)
         if "6" in parts:
-            # the automatic start is not built for noise of 10-40 % of D: Table 6 starts from the truth perturbed
             table_tr(
                 "Table 6: D = 0.2 m",
                 SEED_T6,
@@ -432,13 +474,13 @@ def main(argv: Sequence[str] | None = None) -> None:
                 0.2,
                 args.reps,
                 kind,
-                auto=False,
+                auto=auto,
                 fixed_ratio=fixed,
             )
         if "cov" in parts:
-            coverage_study(args.full_coverage, max(1, args.reps // 2), kind, args.plot)
+            coverage_study(args.full_coverage, max(1, args.reps // 2), kind, args.plot, auto=auto)
         if "7" in parts:
-            table7(args.reps, kind)
+            table7(args.reps, kind, auto=auto)
         if "reg" in parts:
             registration(args.reps, kind)
         if "sharp" in parts:

@@ -34,6 +34,7 @@ from dataclasses import replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from lrms.cylinder import Cylinder, CylinderModel, estimate_normals, refine_cylinder
@@ -60,6 +61,23 @@ MIN_POINTS = 200
 #: Nominal degrees the estimated degree snaps to when within SNAP_DEG.
 NOMINAL_DEGREES = (45.0, 90.0)
 SNAP_DEG = 12.0
+#: The slice start is used as it is when the robust spread of the points about it is below this
+#: fraction of its D; otherwise the global search (step 5) runs too.
+QUIET = 0.04
+#: Points for the global search and the robust refinement.
+SEARCH_SAMPLE = 1000
+#: In-plane directions tried for the start leg (over the full turn).
+KAPPA_STEPS = 24
+#: Coarse candidates refined by robust least squares.
+REFINE_TOP = 8
+#: Function evaluations allowed to one robust refinement.
+REFINE_NFEV = 60
+#: Soft-L1 scale as a fraction of the diameter guessed from the cloud's thickness.
+SOFT_SCALE = 0.1
+#: Diameters tried by the global search, in units of the guess from the cloud's thickness.
+DIAMETER_FACTORS = (1.0, 2.0, 3.5)
+#: Flange diameter guessed for the global search, in D.
+FLANGE_GUESS = 1.5
 
 
 def _circle_fit(u: FloatArray, v: FloatArray) -> tuple[float, float, float]:
@@ -226,7 +244,27 @@ def initial_values(
     """Initial elbow parameters from the cloud alone (see the module docstring).
 
     ``degree`` (rad) fixes the joint degree; ``None`` takes the angle between the two end axes
-    (snapped to 45 or 90 deg when within 12 deg). ``ratio`` fixes ``A = ratio D``.
+    (snapped to 45 or 90 deg when within 12 deg), or (global search) tries 45 and 90 deg.
+    ``ratio`` fixes ``A = ratio D``. The best of :func:`initial_candidates`.
+    """
+    return initial_candidates(points, degree=degree, ratio=ratio, flange=flange, rng=rng)[0]
+
+
+def initial_candidates(
+    points: ArrayLike,
+    degree: float | None = None,
+    ratio: float | None = None,
+    flange: bool = False,
+    rng: np.random.Generator | None = None,
+    max_candidates: int = 3,
+) -> list[ElbowParams]:
+    """Start values from the cloud alone, best first (at most ``max_candidates``, mutually distinct).
+
+    The slice-cylinder start (steps 1-4 of the module docstring) is taken as it is when the
+    points lie close to it (robust residual spread below ``QUIET`` of ``D``). Otherwise (high
+    noise, partial coverage, or no usable slice) the global search of step 5 runs as well, and
+    every start, the slice start included, is refined by robust least squares on a subsample and
+    ranked by the same robust cost. Raises :class:`FitError` when neither yields an elbow.
     """
     pts = as_points(points)
     if pts.shape[0] < MIN_POINTS:
@@ -234,8 +272,46 @@ def initial_values(
     if not np.all(np.isfinite(pts)):
         raise FitError("points contain NaN or infinite coordinates")
     g = np.random.default_rng(12345) if rng is None else rng
-    centroid = pts.mean(axis=0)
     sample = pts if pts.shape[0] <= COST_SAMPLE else pts[g.choice(pts.shape[0], COST_SAMPLE, replace=False)]
+    errors: list[str] = []
+    slice_start: ElbowParams | None = None
+    try:
+        slice_start = _slice_start(pts, sample, degree, ratio, flange, g)
+    except FitError as exc:
+        errors.append(f"slice cylinders: {exc}")
+    if slice_start is not None:
+        spread = 1.4826 * float(np.median(np.abs(_residuals(sample, slice_start))))
+        if spread < QUIET * slice_start.D:
+            return [slice_start]
+    small = (
+        sample if sample.shape[0] <= SEARCH_SAMPLE else sample[g.choice(sample.shape[0], SEARCH_SAMPLE, replace=False)]
+    )
+    try:
+        ranked = _global_search(small, degree, ratio, flange, [] if slice_start is None else [slice_start])
+    except FitError as exc:
+        errors.append(f"global search: {exc}")
+        ranked = []
+    if not ranked:
+        raise FitError("no elbow found (" + "; ".join(errors) + ")")
+    out: list[ElbowParams] = []
+    for cand in ranked:
+        if all(not _same_start(cand, o) for o in out):
+            out.append(cand)
+        if len(out) == max_candidates:
+            break
+    return out
+
+
+def _slice_start(
+    pts: FloatArray,
+    sample: FloatArray,
+    degree: float | None,
+    ratio: float | None,
+    flange: bool,
+    g: np.random.Generator,
+) -> ElbowParams:
+    """Steps 1-4: slice cylinders at the two pipe ends, the corner, golden-section searches."""
+    centroid = pts.mean(axis=0)
     best: ElbowParams | None = None
     best_cost = math.inf
     best_corner = centroid
@@ -253,6 +329,130 @@ def initial_values(
     if best is None:
         raise FitError(errors[0] if errors else "no elbow found")
     return _refine_rotation(sample, best, best_corner, ratio, flange)
+
+
+def _residuals(pts: FloatArray, p: ElbowParams) -> FloatArray:
+    return evaluate_model((pts - p.center) @ p.rot.T, p.A, p.D, p.degree, p.Df).f
+
+
+def _same_start(a: ElbowParams, b: ElbowParams) -> bool:
+    """Two starts that describe nearly the same surface (either labelling of the legs)."""
+    if abs(a.degree - b.degree) > 1e-6:
+        return False
+    scale = max(a.D, b.D)
+    for q in (b, b.flipped()):
+        ang = float(np.linalg.norm(Rotation.from_matrix(a.rot @ q.rot.T).as_rotvec()))
+        if ang < math.radians(5.0) and float(np.linalg.norm(a.center - q.center)) < 0.1 * scale:
+            return True
+    return False
+
+
+def _global_search(
+    small: FloatArray,
+    degree: float | None,
+    ratio: float | None,
+    flange: bool,
+    extra: list[ElbowParams],
+) -> list[ElbowParams]:
+    """Step 5: coarse search over the in-plane rotation, degree and A/D; robust refinement; ranking.
+
+    The bend plane is the cloud's best-fitting plane (PCA: a tube bent in a plane is thinnest
+    across it, and isotropic noise does not change the eigenvectors); its normal is the torus
+    axis. For each in-plane direction of the start leg (``KAPPA_STEPS`` over the full turn; the
+    model's mirror symmetry makes the other sign of the normal redundant), each degree (given, or
+    45 and 90 deg) and each A/D (given, or 0.5, 1, 1.5) the torus centre is placed so that the
+    bend's arc centroid falls on the cloud's centroid. The ``REFINE_TOP`` candidates of lowest
+    robust cost, plus ``extra`` (the slice start), are refined by :func:`_robust_refine` and
+    returned best first.
+    """
+    m = small.mean(axis=0)
+    w, v = np.linalg.eigh(np.cov(small.T))
+    n = v[:, 0]
+    e1, e2 = v[:, 2], v[:, 1]
+    d0 = 2.0 * math.sqrt(2.0 * max(float(w[0]), 1e-300))
+    fs = SOFT_SCALE * d0
+    degrees = [degree] if degree is not None else [math.radians(x) for x in NOMINAL_DEGREES]
+    for p in extra:
+        if degree is None and all(abs(p.degree - dd) > 1e-6 for dd in degrees):
+            degrees.append(p.degree)
+    ratios = [ratio] if ratio is not None else [0.5, 1.0, 1.5]
+    # a tube seen from one side is thinner across the plane than a whole tube: larger guesses too
+    dias = [f * d0 for f in DIAMETER_FACTORS] + [p.D for p in extra]
+    cands: list[tuple[float, ElbowParams]] = []
+    for k in range(KAPPA_STEPS):
+        kap = 2.0 * math.pi * k / KAPPA_STEPS
+        ex = math.cos(kap) * e1 + math.sin(kap) * e2
+        ez = np.cross(ex, n)
+        rot = np.vstack([ex, n, ez])
+        for dg in degrees:
+            b = math.pi / 2 + dg / 2
+            ub = math.cos(b) * rot[0] + math.sin(b) * rot[2]
+            for rt in ratios:
+                for dia in dias:
+                    a = rt * dia
+                    rho = a * math.sin(dg / 2) / (dg / 2)
+                    p = ElbowParams(m - rho * ub, rot, a, dia, dg, FLANGE_GUESS * dia if flange else None)
+                    cands.append((_soft_cost(_residuals(small, p), fs), p))
+    cands.sort(key=lambda t: t[0])
+    refined: list[tuple[float, ElbowParams]] = []
+    for p in [*extra, *(c[1] for c in cands[:REFINE_TOP])]:
+        if flange and p.Df is None:
+            p = replace(p, Df=FLANGE_GUESS * p.D)
+        try:
+            q = _robust_refine(small, p, ratio, flange, fs)
+        except FitError:
+            continue
+        refined.append((_soft_cost(_residuals(small, q), fs), q))
+    if not refined:
+        raise FitError("the robust refinement failed from every start")
+    refined.sort(key=lambda t: t[0])
+    return [q for _, q in refined]
+
+
+def _soft_cost(f: FloatArray, fs: float) -> float:
+    """The soft-L1 cost of :func:`scipy.optimize.least_squares` (per point), scale ``fs``."""
+    z = (f / fs) ** 2
+    return float(np.mean(2.0 * (np.sqrt(1.0 + z) - 1.0)))
+
+
+def _robust_refine(small: FloatArray, p: ElbowParams, ratio: float | None, flange: bool, fs: float) -> ElbowParams:
+    """Robust least squares (soft L1, scale ``fs``) of all parameters from ``p`` on ``small``.
+
+    Unknowns: the centre offset, a rotation vector applied to ``p.rot``, ``D``, and (ratio free)
+    ``A/D`` bounded to [0.5, 5] so that the torus cannot cut itself, and ``Df/D`` for flanges.
+    """
+    d0 = p.D
+    rot0 = p.rot
+
+    def unpack(x: FloatArray) -> ElbowParams:
+        rot = Rotation.from_rotvec(x[3:6]).as_matrix() @ rot0
+        dia = d0 * float(x[6])
+        a = (ratio if ratio is not None else float(x[7])) * dia
+        df = dia * float(x[-1]) if flange else None
+        return ElbowParams(p.center + d0 * x[:3], rot, a, dia, p.degree, df)
+
+    x0 = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+    lo = [-np.inf] * 6 + [0.05]
+    hi = [np.inf] * 6 + [20.0]
+    if ratio is None:
+        x0.append(min(max(p.A / p.D, 0.5), 5.0))
+        lo.append(0.5)
+        hi.append(5.0)
+    if flange:
+        x0.append(min(max((p.Df or FLANGE_GUESS * p.D) / p.D, 1.0), 4.0))
+        lo.append(1.0)
+        hi.append(4.0)
+
+    def fun(x: FloatArray) -> FloatArray:
+        return _residuals(small, unpack(x)) / d0
+
+    try:
+        res = least_squares(
+            fun, np.array(x0), bounds=(lo, hi), loss="soft_l1", f_scale=fs / d0, max_nfev=REFINE_NFEV, x_scale=1.0
+        )
+    except ValueError as exc:  # non-finite residuals
+        raise FitError(f"robust refinement failed: {exc}") from exc
+    return unpack(np.asarray(res.x))
 
 
 def _end_candidates(pts: FloatArray, centroid: FloatArray) -> list[tuple[FloatArray, FloatArray]]:

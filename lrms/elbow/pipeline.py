@@ -9,14 +9,18 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from lrms.elbow.gauss_helmert import ElbowFit, fit_elbow
-from lrms.elbow.initial import initial_values
+from lrms.elbow.initial import initial_candidates
 from lrms.elbow.model import BEND, END, START, ElbowParams, as_points, evaluate_model
 from lrms.errors import FitError
 
 FloatArray = NDArray[np.float64]
 
-#: Fits whose a posteriori sigma exceeds this fraction of D are not elbows.
-MAX_SIGMA0_FRACTION = 0.15
+#: Fits whose a posteriori sigma exceeds this fraction of D are not elbows. Noise of up to 40 % of
+#: the true D must pass (seed 000's Table 6: +-80 mm on D = 0.2 m gives sigma0 about 24 % of the
+#: fitted D, which orthogonal distances inflate); a cloud with no tube surface at all does not.
+MAX_SIGMA0_FRACTION = 0.3
+#: The points on the bend must cover at least this fraction of the fitted bend angle.
+MIN_BEND_SPAN = 0.3
 #: Rounds of trimming at most.
 TRIM_ROUNDS = 8
 #: The end leg must be this much longer than the start leg before the two are swapped.
@@ -36,6 +40,16 @@ def leg_extents(points: ArrayLike, params: ElbowParams) -> tuple[float, float, i
         float(end.max()) if end.size else 0.0,
         int(np.count_nonzero(ev.portion == BEND)),
     )
+
+
+def bend_span(points: ArrayLike, params: ElbowParams) -> float:
+    """Angle (rad) along the bend covered by the points on it: the 2 %-98 % range of their Phi."""
+    ev = evaluate_model(params.to_model(points), params.A, params.D, params.degree, params.Df)
+    phi = ev.phi[ev.portion == BEND]
+    if phi.size < 10:
+        return 0.0
+    lo, hi = np.quantile(phi, [0.02, 0.98])
+    return float(hi - lo)
 
 
 def canonical(points: ArrayLike, params: ElbowParams) -> ElbowParams:
@@ -67,20 +81,45 @@ def fit_auto(
     ``trim``: drop points farther than ``trim`` robust standard deviations (1.4826 times the
     median absolute residual of the points kept so far) from the fitted surface and refit, until
     the kept set settles (at most ``TRIM_ROUNDS`` rounds; the kept rows are in ``fit.inliers``).
-    Raises :class:`FitError` when no elbow is found or the adjustment fails; a fit whose residual
-    spread exceeds 15 % of ``D`` is rejected as "not an elbow".
+    Starts: ``init``, or the candidates of :func:`lrms.elbow.initial.initial_candidates` (best
+    first; the next is tried when the adjustment from one fails). Raises :class:`FitError` when
+    no elbow is found or the adjustment fails from every start; a fit whose residual spread
+    exceeds ``MAX_SIGMA0_FRACTION`` of ``D`` is rejected as "not an elbow".
     """
     pts = as_points(points)
-    start = init if init is not None else initial_values(pts, degree=degree, ratio=ratio, flange=flange, rng=rng)
-    if init is not None and degree is not None:
-        start = replace(start, degree=degree)
+    if trim is not None and trim <= 0:
+        raise FitError(f"trim must be > 0 (in sigma0), got {trim}")
+    if init is not None:
+        starts = [replace(init, degree=degree) if degree is not None else init]
+    else:
+        starts = initial_candidates(pts, degree=degree, ratio=ratio, flange=flange, rng=rng)
+    errors: list[str] = []
+    for start in starts:
+        try:
+            return _fit_from(pts, start, ratio, flange, cov, trim, max_iter)
+        except FitError as exc:
+            # the next start (a different basin found by the global search) may do better
+            errors.append(str(exc))
+    if len(errors) == 1:
+        raise FitError(errors[0])
+    raise FitError(f"{errors[0]} (best start; the {len(errors) - 1} other starts: " + "; ".join(errors[1:]) + ")")
+
+
+def _fit_from(
+    pts: FloatArray,
+    start: ElbowParams,
+    ratio: float | None,
+    flange: bool,
+    cov: ArrayLike | None,
+    trim: float | None,
+    max_iter: int,
+) -> ElbowFit:
+    """Adjustment, trimming, labelling and the sanity checks of :func:`fit_auto` from one start."""
     cv = None if cov is None else np.asarray(cov, dtype=np.float64)
     keep = np.ones(pts.shape[0], dtype=bool)
     if trim is None:
         fit = fit_elbow(pts, start, ratio=ratio, flange=flange, cov=cv, max_iter=max_iter)
     else:
-        if trim <= 0:
-            raise FitError(f"trim must be > 0 (in sigma0), got {trim}")
         # trimmed least squares from the start values: the points near the starting surface,
         # then (after each fit) the points within trim * sigma0 of the fitted surface
         params = start
@@ -113,6 +152,12 @@ def fit_auto(
     _, _, nb = leg_extents(sub, fit.params)
     if nb < 10:
         raise FitError("no elbow: hardly any points lie on the bend of the fitted model")
+    span = bend_span(sub, fit.params)
+    if span < MIN_BEND_SPAN * fit.params.degree:
+        raise FitError(
+            f"no elbow: the points cover {math.degrees(span):.1f} deg of the fitted bend's "
+            f"{math.degrees(fit.params.degree):.0f} deg (a straight pipe fits a leg and a sliver of bend)"
+        )
     return replace(
         fit,
         inliers=keep if trim is not None else None,
