@@ -81,10 +81,12 @@ def fit_auto(
     ``trim``: drop points farther than ``trim`` robust standard deviations (1.4826 times the
     median absolute residual of the points kept so far) from the fitted surface and refit, until
     the kept set settles (at most ``TRIM_ROUNDS`` rounds; the kept rows are in ``fit.inliers``).
-    Starts: ``init``, or the candidates of :func:`lrms.elbow.initial.initial_candidates` (best
-    first; the next is tried when the adjustment from one fails). Raises :class:`FitError` when
-    no elbow is found or the adjustment fails from every start; a fit whose residual spread
-    exceeds ``MAX_SIGMA0_FRACTION`` of ``D`` is rejected as "not an elbow".
+    Starts: ``init``, or the candidates of :func:`lrms.elbow.initial.initial_candidates` (one
+    when the slice start fits the points closely; else up to three distinct starts of the global
+    search): the adjustment runs from each and the fit with the lowest ``sigma0`` is returned.
+    Raises :class:`FitError` when no elbow is found or the adjustment fails from every start; a
+    fit whose residual spread exceeds ``MAX_SIGMA0_FRACTION`` of ``D`` is rejected as "not an
+    elbow".
     """
     pts = as_points(points)
     if trim is not None and trim <= 0:
@@ -94,12 +96,18 @@ def fit_auto(
     else:
         starts = initial_candidates(pts, degree=degree, ratio=ratio, flange=flange, rng=rng)
     errors: list[str] = []
+    best: ElbowFit | None = None
     for start in starts:
         try:
-            return _fit_from(pts, start, ratio, flange, cov, trim, max_iter)
+            fit = _fit_from(pts, start, ratio, flange, cov, trim, max_iter)
         except FitError as exc:
-            # the next start (a different basin found by the global search) may do better
             errors.append(str(exc))
+            continue
+        # several starts (different basins found by the global search): the lowest final cost wins
+        if best is None or fit.sigma0 < best.sigma0:
+            best = fit
+    if best is not None:
+        return best
     if len(errors) == 1:
         raise FitError(errors[0])
     raise FitError(f"{errors[0]} (best start; the {len(errors) - 1} other starts: " + "; ".join(errors[1:]) + ")")
