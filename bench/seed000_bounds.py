@@ -171,6 +171,12 @@ def main(argv: Sequence[str] | None = None) -> None:
                 if seed is not None:
                     r.prob[kind] = float(np.mean(u.draws[metric] * sig <= seed + HALF_DIGIT[metric]))
             rows.append(r)
+        print(f"\n{mode}: floors at sigma = 1 mm (scale with the noise sigma; dT, dAD in mm, dR in deg)")
+        print(f"{'joint':<14}{'D m':>6}{'dT':>9}{'dR':>9}{'dAD':>9}")
+        for (joint, D), u in sorted(units.items(), key=lambda kv: (kv[0][1], kv[0][0])):
+            sp = TABLE1[joint]
+            name = f"{joint} {sp.degree_deg:.0f}deg {sp.ratio:g}D" + (" fl" if sp.flange else "")
+            print(f"{name:<14}{D:>6.1f}{u.rms['dT']:>9.4f}{u.rms['dR']:>9.4f}{u.rms['dAD']:>9.4f}")
         if args.ours:
             # one set of fits per (table, row, noise): the three metrics come from the same fits
             done: dict[tuple[str, str, float, bool], tuple[dict[str, float], int]] = {}
