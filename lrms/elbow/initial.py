@@ -257,6 +257,7 @@ def initial_candidates(
     flange: bool = False,
     rng: np.random.Generator | None = None,
     max_candidates: int = 3,
+    method: str = "auto",
 ) -> list[ElbowParams]:
     """Start values from the cloud alone, best first (at most ``max_candidates``, mutually distinct).
 
@@ -264,8 +265,12 @@ def initial_candidates(
     points lie close to it (robust residual spread below ``QUIET`` of ``D``). Otherwise (high
     noise, partial coverage, or no usable slice) the global search of step 5 runs as well, and
     every start, the slice start included, is refined by robust least squares on a subsample and
-    ranked by the same robust cost. Raises :class:`FitError` when neither yields an elbow.
+    ranked by the same robust cost. ``method``: ``"auto"`` (as described), ``"slice"`` (the
+    slice start only) or ``"global"`` (the global search only). Raises :class:`FitError` when
+    neither yields an elbow.
     """
+    if method not in ("auto", "slice", "global"):
+        raise FitError(f"method must be 'auto', 'slice' or 'global', got {method!r}")
     pts = as_points(points)
     if pts.shape[0] < MIN_POINTS:
         raise FitError(f"too few points to find an elbow: {pts.shape[0]} (need at least {MIN_POINTS})")
@@ -275,10 +280,15 @@ def initial_candidates(
     sample = pts if pts.shape[0] <= COST_SAMPLE else pts[g.choice(pts.shape[0], COST_SAMPLE, replace=False)]
     errors: list[str] = []
     slice_start: ElbowParams | None = None
-    try:
-        slice_start = _slice_start(pts, sample, degree, ratio, flange, g)
-    except FitError as exc:
-        errors.append(f"slice cylinders: {exc}")
+    if method != "global":
+        try:
+            slice_start = _slice_start(pts, sample, degree, ratio, flange, g)
+        except FitError as exc:
+            if method == "slice":
+                raise
+            errors.append(f"slice cylinders: {exc}")
+    if slice_start is not None and method == "slice":
+        return [slice_start]
     if slice_start is not None:
         spread = 1.4826 * float(np.median(np.abs(_residuals(sample, slice_start))))
         if spread < QUIET * slice_start.D:
