@@ -21,9 +21,27 @@
    then refined one at a time by golden-section search on the same cost, twice over (the
    seed's golden-section search for ``Omega`` and ``Psi``).
 
-The cloud must show both connections (any pose, coverage about 180 deg or more around the pipe).
-:class:`lrms.errors.FitError` is raised when no elbow can be made out (too few points, the two ends
-nearly collinear, no usable slice).
+5. **Global search** (when steps 1-4 fail, or their start leaves a robust residual spread of
+   ``QUIET`` (4 %) of ``D`` or more: high noise, partial coverage). The slice cylinders need
+   surface normals, which noise of 10 % of ``D`` destroys; the whole cloud still shows the bend.
+   On a subsample of ``SEARCH_SAMPLE`` points: the bend plane is the cloud's best-fitting plane
+   (PCA; isotropic noise leaves the eigenvectors alone), its normal the torus axis, and a
+   diameter guess comes from the cloud's thickness across it (a whole tube has a standard
+   deviation ``sqrt(r^2/2 + sigma^2)`` across its bend plane). A coarse grid over the start
+   leg's direction in that plane (``KAPPA_STEPS``), the degree (given, or 45 and 90 deg, or the
+   slice estimate), ``A/D`` (given, or 0.5, 1, 1.5) and ``D`` (``DIAMETER_FACTORS`` times the
+   guess: a tube seen from one side is thinner) places the torus so that the arc's centroid is
+   the cloud's centroid, and scores each by the soft-L1 cost of the orthogonal distances. The
+   ``REFINE_TOP`` best and the slice start are refined by robust least squares
+   (:func:`scipy.optimize.least_squares`, soft-L1 loss, every parameter free, ``A/D`` kept in
+   [0.5, 5]) and ranked by the same cost; :func:`initial_candidates` returns up to three
+   distinct ones, best first, and :func:`lrms.elbow.fit_auto` adjusts from each and keeps the
+   lowest ``sigma0``.
+
+Where it works (measured in ``bench/seed000_tables.py``, see ``docs/seed000-reproduction.md``):
+Table 1's joints in any pose at 180 deg coverage or more, and at full coverage with noise up to
+40 % of ``D``. A strip of 30 deg or less around the pipe does not fix the tube's axis and is
+usually refused. :class:`lrms.errors.FitError` is raised when no elbow can be made out.
 """
 
 from __future__ import annotations
