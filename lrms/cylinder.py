@@ -737,7 +737,8 @@ def support_plane(pts: FloatArray, cyl: Cylinder, opt: DetectOptions) -> tuple[F
     come in sparse scan lines, so their neighbourhood normals are ill-defined, and the front of
     the part is as flat as the table within the range noise.)
     """
-    off = pts[np.abs(cyl.surface_distance(pts)) > opt.threshold]
+    dist = np.abs(cyl.surface_distance(pts))
+    off = pts[dist > opt.threshold]
     if off.shape[0] < max(opt.min_inliers, opt.plane_min_share * pts.shape[0]):
         return None
     s = off @ cyl.direction
@@ -746,7 +747,18 @@ def support_plane(pts: FloatArray, cyl: Cylinder, opt: DetectOptions) -> tuple[F
     if edges.size < 2:
         return None
     counts, edges = np.histogram(s, bins=edges)
+    # the part stands on the plane: a slab through the middle of the points on the candidate is
+    # not its support (a dense band of the part's own points, left off a wrong candidate, can
+    # outnumber the table), so only slabs beyond the 5th / 95th percentile of the candidate's
+    # points along the axis, less two slab widths, are eligible
+    s_on = pts[dist <= opt.threshold] @ cyl.direction
+    if s_on.size >= opt.min_inliers:
+        lo, hi = np.percentile(s_on, [5.0, 95.0])
+        mid = 0.5 * (edges[:-1] + edges[1:])
+        counts = np.where((mid <= lo + 2 * width) | (mid >= hi - 2 * width), counts, 0)
     pair = counts[:-1] + counts[1:] if counts.size > 1 else counts
+    if not np.any(pair > 0):
+        return None
     i = int(np.argmax(pair))
     centre = edges[i + 1] if counts.size > 1 else 0.5 * (edges[0] + edges[1])
     near = off[np.abs(s - centre) < width]

@@ -9,6 +9,7 @@ from bench import seed003_reproduction as seed
 from lrms.covariance import NoiseModel
 from lrms.cylinder import (
     Cylinder,
+    DetectOptions,
     _Frame,
     central_jacobian,
     estimate_normals,
@@ -18,6 +19,7 @@ from lrms.cylinder import (
     orthogonal_jacobian,
     orthogonal_residuals,
     rays_from_points,
+    support_plane,
 )
 from lrms.errors import FitError
 
@@ -42,7 +44,7 @@ def test_analytic_jacobians_match_central_differences() -> None:
     truth = seed.sweep_points(radius=0.06875, step_beta_deg=1.0)
     pts, rays = seed.noisy_scan(truth, NM, np.random.default_rng(4))
     start = seed.seed_cylinder(0.06875)
-    frame = _Frame.at(Cylinder(start.point + np.array([0.002, -0.003, 0.0]), [0.01, 0.02, 1.0], 0.066))
+    frame = _Frame.at(Cylinder(start.point + np.array([0.002, -0.003, 0.0]), np.array([0.01, 0.02, 1.0]), 0.066))
     th = np.array([0.003, -0.002, 0.001, 0.0005, 0.001])
     args = (rays.origins, rays.dirs, rays.ranges, rays.sigma_l, rays.sigma_perp)
     res = los_residuals(th, frame, *args)
@@ -62,7 +64,8 @@ def test_analytic_jacobians_match_central_differences() -> None:
     assert miss.size > 0
     np.testing.assert_allclose(ja[n + miss], jn[n + miss], rtol=1e-4, atol=1e-3)
     jo = orthogonal_jacobian(th, frame, pts, np.asarray(0.01))
-    np.testing.assert_allclose(jo, central_jacobian(lambda t: orthogonal_residuals(t, frame, pts, 0.01), th), atol=1e-4)
+    jc = central_jacobian(lambda t: orthogonal_residuals(t, frame, pts, np.asarray(0.01)), th)
+    np.testing.assert_allclose(np.asarray(jo, dtype=float), np.asarray(jc, dtype=float), atol=1e-4)
 
 
 def test_normals_of_a_clean_cylinder_are_radial() -> None:
@@ -145,3 +148,26 @@ def test_bad_input_raises_fit_error() -> None:
     # rays that do not match the points
     with pytest.raises(FitError):
         fit_cylinder(wall, rays=rays_from_points(wall[:10]))
+
+
+def test_support_plane_is_at_the_end_of_the_part_not_through_a_dense_band_of_it() -> None:
+    """A rough candidate (axis 60 mm off, radius 128 mm) leaves the sides of the part off its
+    surface; a dense band of those at mid-height (the rig samples its own height densely) must
+    not pass for the table the part stands on."""
+    rng = np.random.default_rng(4)
+    part = Cylinder(np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.07)
+    phi = rng.uniform(-np.pi, 0.0, 11000)  # the half facing the rig (-y)
+    z = np.concatenate([rng.uniform(0.0, 0.8, 3000), rng.uniform(0.39, 0.41, 8000)])
+    side = np.column_stack([0.07 * np.cos(phi), 0.07 * np.sin(phi), z])
+    rad, ang = np.sqrt(rng.uniform(0.1**2, 0.5**2, 500)), rng.uniform(-np.pi, 0.0, 500)
+    table = np.column_stack([rad * np.cos(ang), rad * np.sin(ang), rng.normal(0.0, 5e-4, 500)])
+    pts = np.vstack([side, table])
+    rough = Cylinder(np.array([0.0, 0.06, 0.4]), part.direction, 0.128)
+    opt = DetectOptions(plane_min_share=0.02)
+    # the band outnumbers the table among the points off the rough candidate
+    off = np.abs(rough.surface_distance(pts)) > opt.threshold
+    assert np.count_nonzero(off & (np.abs(pts[:, 2] - 0.4) < 0.02)) > np.count_nonzero(off & (pts[:, 2] < 0.02))
+    plane = support_plane(pts, rough, opt)
+    assert plane is not None
+    normal, offset = plane
+    assert abs(normal[2]) > 0.999 and abs(offset) < 0.002
