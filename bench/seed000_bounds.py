@@ -241,10 +241,13 @@ def _print(rows: list[Row], mode: str, args: argparse.Namespace) -> None:
             line += f" {format(r.matched, fmt):>8} {r.ours[True] / r.matched:>9.2f}"
         print(line)
     # summary per table
-    print(f"\nsummary ({mode}): seed cells (noise > 0, seed value given) by what the floor allows")
     print(
-        f"{'table':<7}{'cells':>6}{'G <1/2':>8}{'G <1/3':>8}{'G P<5%':>8}{'G P<1%':>8}"
-        f"{'U <1/2':>8}{'U <1/3':>8}{'U P<5%':>8}{'U P<1%':>8}"
+        f"\nsummary ({mode}): seed cells (noise > 0, seed value given) whose value (+ half a printed digit) is"
+        " below the floor (<1), half of it (<1/2), a third (<1/3); whose P is below 5 % and 1 %"
+    )
+    print(
+        f"{'table':<7}{'cells':>6}{'G <1':>6}{'G <1/2':>8}{'G <1/3':>8}{'G P<5%':>8}{'G P<1%':>8}"
+        f"{'U <1':>6}{'U <1/2':>8}{'U <1/3':>8}{'U P<5%':>8}{'U P<1%':>8}"
         + (f"{'ours/flG* med':>14}{'max':>7}" if args.ours else "")
     )
     all_probs: dict[str, list[tuple[str, float]]] = {"gauss": [], "uniform": []}
@@ -256,12 +259,13 @@ def _print(rows: list[Row], mode: str, args: argparse.Namespace) -> None:
         for kind in ("gauss", "uniform"):
             below = [(r.seed or 0.0) + HALF_DIGIT[r.metric] for r in sel]
             counts += [
+                sum(b < r.floor[kind] for b, r in zip(below, sel, strict=True)),
                 sum(b < r.floor[kind] / 2 for b, r in zip(below, sel, strict=True)),
                 sum(b < r.floor[kind] / 3 for b, r in zip(below, sel, strict=True)),
                 sum(r.prob[kind] < 0.05 for r in sel),
                 sum(r.prob[kind] < 0.01 for r in sel),
             ]
-        line = f"{tab:<7}{len(sel):>6}" + "".join(f"{c:>8}" for c in counts)
+        line = f"{tab:<7}{len(sel):>6}" + "".join(f"{c:>{6 if k % 5 == 0 else 8}}" for k, c in enumerate(counts))
         if args.ours:
             ratios = [r.ours[True] / r.matched for r in rows if r.table == tab and True in r.ours]
             ratios = [x for x in ratios if math.isfinite(x)]
