@@ -125,6 +125,66 @@ def our_rmse(
     return {"dT": rmse(et), "dR": rmse(er), "dAD": rmse(ead)}, fails, {m: math.sqrt(v) for m, v in fl.items()}
 
 
+BIAS_CELLS = (("b", 0.2, 20.0), ("d", 0.1, 3.0), ("a", 0.2, 6.0), ("f", 0.1, 2.0))
+
+
+def bias_study(k: int) -> None:
+    """Mean errors (model frame) over ``k`` fits per cell, curvature correction on and off, plus
+    the axis gate on a sharp joint and the floor of the points the gate keeps."""
+    from lrms.elbow.gauss_helmert import AXIS_GATE, _usable
+
+    print(f"\nBias: mean error +- standard error over {k} fits (47,160 points, A/D free, Gaussian noise,")
+    print("start: truth perturbed); centre in the model frame (X: start leg, Z: towards the start leg's")
+    print("centre line), mm; mean fit time s")
+    for joint, D, noise in BIAS_CELLS:
+        spec = TABLE1[joint]
+        rng = np.random.default_rng(31)
+        errs: dict[bool, list[FloatArray]] = {True: [], False: []}
+        times: dict[bool, list[float]] = {True: [], False: []}
+        for _ in range(k):
+            c, rot = random_pose(rng)
+            j = make_joint(spec, D=D, center=c, rot=rot, noise=noise / 1e3, rng=rng)
+            for corr in errs:
+                t0 = time.perf_counter()
+                fit = fit_elbow(j.points, _perturbed(j.truth), flange=spec.flange, curvature_correction=corr)
+                times[corr].append(time.perf_counter() - t0)
+                p = fit.params
+                if math.degrees(np.arccos(np.clip((np.trace(p.rot @ j.truth.rot.T) - 1) / 2, -1, 1))) > 90:
+                    p = p.flipped()
+                e = np.concatenate([j.truth.rot @ (p.center - j.truth.center), [p.A - j.truth.A, p.D - j.truth.D]])
+                errs[corr].append(e * 1e3)
+        for corr, ev in errs.items():
+            a = np.array(ev)
+            m, se = a.mean(axis=0), a.std(axis=0, ddof=1) / math.sqrt(k)
+            parts = "  ".join(
+                f"{n} {mm:+.3f}+-{s:.3f}" for n, mm, s in zip(("X", "Y", "Z", "A", "D"), m, se, strict=True)
+            )
+            print(
+                f"{joint} D={D:g} m +-{noise:g} mm, correction {'on ' if corr else 'off'}: {parts}  "
+                f"time {np.mean(times[corr]):.3f}"
+            )
+    # the axis gate on a sharp joint
+    rng = np.random.default_rng(32)
+    print(f"\nAxis gate, joint c, D = 0.2 m, +-5 mm Gaussian, {k} fits (correction on): delta_T, delta_AD (mm)")
+    for gate in (0.0, AXIS_GATE):
+        et, ead, fa, fg = [], [], [], []
+        for _ in range(k):
+            c, rot = random_pose(rng)
+            j = make_joint("c", D=0.2, center=c, rot=rot)
+            use = _usable(j.points, j.truth, 0.005, AXIS_GATE)
+            fa.append(metric_floors(parameter_floor(j.points, j.truth, 0.005), j.truth).d_t * 1e3)
+            fg.append(metric_floors(parameter_floor(j.points[use], j.truth, 0.005), j.truth).d_t * 1e3)
+            pts = j.points + rng.normal(0.0, 0.005, j.points.shape)
+            dt, _, dad = _errors(fit_elbow(pts, _perturbed(j.truth), axis_gate=gate), j.truth)
+            et.append(dt)
+            ead.append(dad)
+        print(
+            f"axis_gate {gate:g}: delta_T {np.sqrt(np.mean(np.square(et))):.3f}, delta_AD "
+            f"{np.sqrt(np.mean(np.square(ead))):.3f}; floor delta_T all points {np.sqrt(np.mean(np.square(fa))):.3f}, "
+            f"points the gate keeps {np.sqrt(np.mean(np.square(fg))):.3f}"
+        )
+
+
 def table_rows(tables: set[str]) -> list[tuple[str, str, float, float, str, float | None]]:
     """(table, seed row, D, noise mm, metric, seed value) for every cell with noise > 0."""
     out: list[tuple[str, str, float, float, str, float | None]] = []
@@ -157,7 +217,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--poses", type=int, default=4, help="random poses averaged per joint (default 4)")
     ap.add_argument("--ours", type=int, default=0, help="fits per cell for our RMSE (0: none)")
     ap.add_argument("--no-compare", action="store_true", help="with --ours: skip the uncorrected fits")
+    ap.add_argument("--bias", type=int, default=0, help="fits per cell of the bias study (0: skip it)")
     args = ap.parse_args(argv)
+    if args.bias:
+        bias_study(args.bias)
     tables = set(args.tables.split(","))
     modes = [False, True] if args.ratio == "both" else [args.ratio == "fixed"]
     t0 = time.perf_counter()
