@@ -27,6 +27,11 @@ analytic Jacobian) to finish; the statistics are then computed as above and ``so
 test, the adjustment has converged when every update is below 1 % of the parameter's current
 standard deviation (the cost of a sharp 0.5D elbow is not smooth where the horn torus pinches
 to its axis, and the last digits can otherwise oscillate far below the precision).
+
+Curvature correction (default on): the misclosures are the orthogonal distances minus their
+expected value under the noise (:func:`curvature_offset`), which removes the second-order bias of
+orthogonal-distance fitting on a curved surface (a tube fitted ``sigma^2/(2R)`` too fat, and the
+bend radius and centre shifted); docs/elbow-accuracy.md has the derivation and the measurements.
 """
 
 from __future__ import annotations
