@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from bench import seed003_reproduction as seed
 from lrms.covariance import NoiseModel
 from lrms.cylinder import (
+    TOP_BIN,
     Cylinder,
     DetectOptions,
     _Frame,
+    _top_height,
     central_jacobian,
     estimate_normals,
     fit_cylinder,
@@ -171,3 +174,33 @@ def test_support_plane_is_at_the_end_of_the_part_not_through_a_dense_band_of_it(
     assert plane is not None
     normal, offset = plane
     assert abs(normal[2]) > 0.999 and abs(offset) < 0.002
+
+
+def test_fit_keeps_the_parts_bottom_and_drops_the_table_and_what_lies_above_the_top() -> None:
+    """The part's beams are selected by the fitted scene model (table under the part, part's top
+    from the inlier density), not by cutting a 20 mm slab at the table."""
+    rng = np.random.default_rng(12)
+    pts, truth, part_rays = seed.lrms_sweep(rng, clutter=0.1, scene_name="seed003-bare")
+    fit = fit_cylinder(pts, noise=NM, rng=rng)
+    assert fit.base_point is not None
+    np.testing.assert_allclose(fit.base_point, truth.point, atol=1e-3)  # C0 on the table top
+    inl = pts[fit.inliers]
+    height = inl[:, 2] - truth.point[2]
+    echoes = part_rays.points()
+    low = echoes[:, 2] - truth.point[2] < 0.02
+    assert np.count_nonzero(low) > 50
+    kept_low = np.count_nonzero((height < 0.02) & (np.abs(truth.surface_distance(inl)) < 0.05))
+    assert kept_low > 0.9 * np.count_nonzero(low)  # the old slab cut kept none of them
+    not_part = cKDTree(echoes).query(inl)[0] > 1e-9
+    assert not np.any(not_part & (np.abs(height) < 3e-3))  # no table echo in front of the base
+    assert height.max() < 0.8 + 0.05  # the part is 0.8 m high: nothing far above its top
+
+
+def test_top_height_from_the_inlier_density() -> None:
+    rng = np.random.default_rng(0)
+    dense = rng.uniform(0.0, 0.6, 3000)
+    sparse = rng.uniform(0.0, 1.0, 10)
+    h = np.concatenate([dense, sparse])
+    top = _top_height(h, h)
+    assert 0.6 <= top <= 0.6 + 3 * TOP_BIN
+    assert _top_height(dense, dense) == pytest.approx(dense.max())  # top not in view: nothing cut
