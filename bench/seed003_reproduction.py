@@ -253,7 +253,11 @@ def section_coverage(n_scans: int, n_mc: int, k: float, points: str, rng: np.ran
 
 
 def section_accuracy(
-    n_sweeps: int, rng: np.random.Generator, scene_name: str = "seed003", clutter: float = 0.1
+    n_sweeps: int,
+    rng: np.random.Generator,
+    scene_name: str = "seed003",
+    clutter: float = 0.1,
+    grazing_sigma: float | None = None,
 ) -> None:
     """Accuracy of the full pipeline against the Cramer-Rao bound, with the diagnostics that
     locate the excess: the bound over the fit's own inliers, the maximum-likelihood fit of the
@@ -262,12 +266,14 @@ def section_accuracy(
     from scipy.spatial import cKDTree
 
     from lrms.crb import cylinder_crb
-    from lrms.cylinder import fit_cylinder, refine_cylinder
+    from lrms.cylinder import GRAZING_SIGMA, DetectOptions, fit_cylinder, refine_cylinder
 
     noise = NoiseModel()
+    g_sigma = GRAZING_SIGMA if grazing_sigma is None else grazing_sigma
+    options = DetectOptions(threshold=max(0.03, 2.5 * noise.sigma_l), grazing_sigma=g_sigma)
     print(
         f"\n== accuracy: {n_sweeps} ray-cast LRMS sweeps (sim.scene {scene_name!r}: 137.5 mm part, table,"
-        f" + {100 * clutter:g} % uniform clutter)"
+        f" + {100 * clutter:g} % uniform clutter); fit weights' lateral term {1e3 * g_sigma:g} mm"
     )
     t0 = time.perf_counter()
     err, oracle, crb, crb_inl, n_in, n_pts, fails = [], [], [], [], [], [], 0
@@ -275,7 +281,7 @@ def section_accuracy(
     for _ in range(n_sweeps):
         pts, part, part_rays = lrms_sweep(rng, clutter=clutter, scene_name=scene_name)
         try:
-            fit = fit_cylinder(pts, noise=noise, rng=rng)
+            fit = fit_cylinder(pts, noise=noise, rng=rng, options=options)
         except LrmsError as exc:  # counted and reported
             fails += 1
             print(f"  fit failed: {exc}")
@@ -369,6 +375,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scene", default="seed003", help="sim.scene scene of the accuracy sweeps")
     ap.add_argument("--clutter", type=float, default=0.1, help="share of uniform clutter points (accuracy)")
     ap.add_argument(
+        "--grazing-sigma-mm",
+        type=float,
+        default=None,
+        help="lateral term of the fit's weights (accuracy; default lrms.cylinder.GRAZING_SIGMA, 0: plain ML)",
+    )
+    ap.add_argument(
         "--only",
         choices=["intervals", "bias", "coverage", "accuracy", "attainable"],
         nargs="*",
@@ -386,7 +398,8 @@ def main(argv: list[str] | None = None) -> int:
     if "coverage" in only:
         section_coverage(args.scans, args.mc, args.k, args.points, rng)
     if "accuracy" in only:
-        section_accuracy(args.sweeps, rng, args.scene, args.clutter)
+        gs = None if args.grazing_sigma_mm is None else 1e-3 * args.grazing_sigma_mm
+        section_accuracy(args.sweeps, rng, args.scene, args.clutter, gs)
     if "attainable" in only:
         section_attainable(args.sweeps, rng)
     return 0

@@ -651,6 +651,9 @@ class DetectOptions:
 
     ``attempts``: independent RANSAC runs (stopping early at a plausible fit); while no fit is
     plausible (see :func:`_plausible`) up to ``max_attempts``. The best fit by :func:`_better` wins.
+    ``grazing_sigma``: the lateral term of the line-of-sight fit's weights (m; negative: the
+    default :data:`GRAZING_SIGMA`; 0: the plain maximum-likelihood fit), see
+    :func:`grazing_weighted_fit`.
     """
 
     sample_size: int = 3000
@@ -666,6 +669,7 @@ class DetectOptions:
     min_inliers: int = 20
     attempts: int = 3
     max_attempts: int = 10
+    grazing_sigma: float = -1.0
 
 
 def detect_plane(
@@ -909,6 +913,88 @@ def _plausible(fit: CylinderFit, pts: FloatArray, start: Cylinder, opt: DetectOp
     return chi_ok and fit.n_inliers >= 0.7 * near
 
 
+#: Lateral standard deviation (m) of a beam's footprint in the estimator's weights
+#: (:func:`grazing_weighted_fit`): a beam meeting the surface at incidence ``i`` is weighted by
+#: ``1 / (sigma_l^2 + (tan(i) GRAZING_SIGMA)^2)``. 0 gives the plain maximum-likelihood fit.
+GRAZING_SIGMA = 2e-4
+#: Smallest cosine of incidence in those weights (a beam that misses the model counts as this).
+_COS_FLOOR = 0.01
+
+
+def incidence_cosines(cyl: Cylinder, rays: Rays) -> FloatArray:
+    """|cos| of the angle between each beam and the surface normal where it meets ``cyl``
+    (0 for a beam that misses)."""
+    t, gap = cyl.ray_range(rays.origins, rays.dirs)
+    q = cyl.radial(rays.origins + t[:, None] * rays.dirs)
+    c = np.abs(_dot(q, rays.dirs)) / np.maximum(np.linalg.norm(q, axis=1), 1e-300)
+    return np.asarray(np.where(gap > 0, 0.0, c), dtype=np.float64)
+
+
+def grazing_sigmas(cyl: Cylinder, rays: Rays, sigma_lat: float) -> FloatArray:
+    """Per-beam ``sqrt(sigma_l^2 + (tan(incidence) sigma_lat)^2)`` at the model ``cyl``."""
+    c = np.maximum(incidence_cosines(cyl, rays), _COS_FLOOR)
+    tan = np.sqrt(1.0 - c * c) / c
+    return np.asarray(np.sqrt(rays.sigma_l**2 + (tan * sigma_lat) ** 2), dtype=np.float64)
+
+
+def grazing_weighted_fit(
+    pts: FloatArray, rays: Rays, fit: CylinderFit, sigma_lat: float = GRAZING_SIGMA, rounds: int = 3
+) -> CylinderFit:
+    """Refit ``fit``'s inliers with the near-grazing beams' leverage moderated.
+
+    The hit range of a beam near the silhouette varies like the square root of the radius, so
+    the few beams at cos(incidence) of 0.03-0.1 carry much of the Fisher information while the
+    linearised model fails there, and a clutter point in front of the part on such a beam pulls
+    the fit hardest. The weights ``1 / (sigma_l^2 + (tan(i) sigma_lat)^2)`` (a lateral term of
+    the order of the beam's pointing / footprint) are recomputed at the current solution for
+    ``rounds`` rounds. An estimator choice: the Cramer-Rao bound is unchanged. The covariance
+    is the sandwich ``A^-1 J^T V J A^-1`` of this weighted fit under the rig's noise
+    (``V = sigma_l^2 / s_i^2``), ``chi2_dof`` the plain one with ``sigma_l``. Keeps ``fit`` if a
+    refit fails.
+    """
+    if sigma_lat <= 0 or not fit.line_of_sight:
+        return fit
+    idx = fit.inliers
+    sub_pts, sub = pts[idx], rays.subset(idx)
+    cyl = fit.cylinder
+    work = np.arange(idx.size)
+    if idx.size > 20_000:  # all rounds but the last on a subset (large clouds)
+        work = np.sort(np.random.default_rng(3).choice(idx.size, 20_000, replace=False))
+    try:
+        for k in range(rounds):
+            use = work if k < rounds - 1 else np.arange(idx.size)
+            part = sub.subset(use)
+            sig = grazing_sigmas(cyl, part, sigma_lat)
+            weighted = Rays(part.origins, part.dirs, part.ranges, sig, part.sigma_perp)
+            cyl = refine_cylinder(sub_pts[use], cyl, rays=weighted, gate=np.inf, max_rounds=1).cylinder
+    except FitError:
+        return fit
+    lo, hi = DetectOptions().radius_range
+    if not lo <= cyl.radius <= hi:
+        return fit
+    sig = grazing_sigmas(cyl, sub, sigma_lat)
+    frame = _Frame.at(cyl)
+    jac = los_jacobian(np.zeros(5), frame, sub.origins, sub.dirs, sig, sub.sigma_perp)
+    var = np.concatenate([np.square(sub.sigma_l / sig), np.ones(idx.size)])
+    a_inv = _covariance(jac)
+    cov = a_inv @ (jac.T @ (var[:, None] * jac)) @ a_inv
+    res = los_residuals(np.zeros(5), frame, sub.origins, sub.dirs, sub.ranges, sub.sigma_l, sub.sigma_perp)
+    t, _ = cyl.ray_range(sub.origins, sub.dirs)
+    return CylinderFit(
+        cylinder=cyl,
+        inliers=idx,
+        rmse=float(np.sqrt(np.mean(np.square(sub.ranges - t)))),
+        covariance=np.asarray(cov, dtype=np.float64),
+        frame=(frame.e1, frame.e2),
+        line_of_sight=True,
+        chi2_dof=float(np.sum(res * res) / max(idx.size - 5, 1)),
+        sigma_scale=1.0,
+        plane=fit.plane,
+        base_point=fit.base_point,
+        n_points=fit.n_points,
+    )
+
+
 #: Clearance (m) above the table, along the axis, of a beam's predicted first hit on the fitted
 #: part for the beam to count as a part echo (:func:`_select_above_table`). The selection is by
 #: the model, not by the measured range, so it does not bias the fit; the clearance covers the
@@ -1079,6 +1165,8 @@ def fit_cylinder(
                 best = _select_above_table(pts, rr, best, table, opt)
                 up, height, origin = table
                 base = best.cylinder.point + (height - float((best.cylinder.point - origin) @ up)) * up
+    if rr is not None:
+        best = grazing_weighted_fit(pts, rr, best, GRAZING_SIGMA if opt.grazing_sigma < 0 else opt.grazing_sigma)
     return CylinderFit(
         cylinder=best.cylinder,
         inliers=best.inliers,

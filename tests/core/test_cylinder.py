@@ -17,6 +17,9 @@ from lrms.cylinder import (
     central_jacobian,
     estimate_normals,
     fit_cylinder,
+    grazing_sigmas,
+    grazing_weighted_fit,
+    incidence_cosines,
     los_jacobian,
     los_residuals,
     orthogonal_jacobian,
@@ -204,3 +207,28 @@ def test_top_height_from_the_inlier_density() -> None:
     top = _top_height(h, h)
     assert 0.6 <= top <= 0.6 + 3 * TOP_BIN
     assert _top_height(dense, dense) == pytest.approx(dense.max())  # top not in view: nothing cut
+
+
+def test_grazing_weights_and_the_weighted_fit_on_exact_data() -> None:
+    """The weights grow with tan(incidence); on noise-free beams the weighted fit is exact, and
+    its (sandwich) covariance is no smaller than the plain maximum-likelihood one (Gauss-Markov)."""
+    cyl = seed.seed_cylinder(0.06875)
+    truth = seed.sweep_points(radius=0.06875, step_beta_deg=1.0)
+    rays = rays_from_points(truth, seed.P, NM)
+    cos_i = incidence_cosines(cyl, rays)
+    sig = grazing_sigmas(cyl, rays, 5e-4)
+    head_on = int(np.argmax(cos_i))
+    grazing = int(np.argmin(cos_i))
+    assert cos_i[head_on] > 0.99 and cos_i[grazing] < 0.05
+    assert sig[head_on] == pytest.approx(NM.sigma_l, rel=1e-3)
+    tan = np.sqrt(1 - cos_i[grazing] ** 2) / cos_i[grazing]
+    assert sig[grazing] == pytest.approx(np.hypot(NM.sigma_l, 5e-4 * tan), rel=1e-9)
+    order = np.argsort(cos_i)
+    assert np.all(np.diff(sig[order]) <= 1e-12)  # more grazing, larger sigma
+    plain = fit_cylinder(truth, rays=rays, noise=NM, initial=cyl, options=DetectOptions(grazing_sigma=0.0))
+    assert grazing_weighted_fit(truth, rays, plain, sigma_lat=0.0) is plain
+    weighted = grazing_weighted_fit(truth, rays, plain, sigma_lat=5e-4)
+    assert weighted.diameter == pytest.approx(cyl.diameter, abs=1e-7)
+    assert weighted.chi2_dof < 1e-6
+    assert weighted.std_diameter >= plain.std_diameter * (1 - 1e-6)
+    assert weighted.std_diameter < 1.5 * plain.std_diameter
