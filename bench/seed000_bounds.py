@@ -128,6 +128,36 @@ def our_rmse(
 BIAS_CELLS = (("b", 0.2, 20.0), ("d", 0.1, 3.0), ("a", 0.2, 6.0), ("f", 0.1, 2.0))
 
 
+def gate_study(k: int) -> None:
+    """Sharp joints: the axis gate on the bend only (default) or on the legs too."""
+    print(f"\nSharp joints, axis gate on the bend only / on the legs too; {k} fits (correction on), Gaussian noise")
+    for joint, D, noise, fixed in (("c", 0.1, 3.0, True), ("c", 0.2, 5.0, False), ("f", 0.1, 2.0, False)):
+        spec = TABLE1[joint]
+        ratio = spec.ratio if fixed else None
+        for legs in (False, True):
+            rng = np.random.default_rng(33)
+            et, ead, ea, fl = [], [], [], []
+            for _ in range(k):
+                c, rot = random_pose(rng)
+                j = make_joint(spec, D=D, center=c, rot=rot)
+                mf = metric_floors(parameter_floor(j.points, j.truth, noise / 1e3, ratio), j.truth, ratio)
+                fl.append((mf.d_t * 1e3, mf.d_ad * 1e3))
+                pts = j.points + rng.normal(0.0, noise / 1e3, j.points.shape)
+                fit = fit_elbow(pts, _perturbed(j.truth), ratio=ratio, gate_legs=legs)
+                dt, _, dad = _errors(fit, j.truth)
+                et.append(dt)
+                ead.append(dad)
+                ea.append(dad[0])
+            ft, fad = np.sqrt(np.mean(np.square(fl), axis=0))
+            dt_r = float(np.sqrt(np.mean(np.square(et)))) / ft
+            dad_r = float(np.sqrt(np.mean(np.square(ead)))) / fad
+            print(
+                f"{joint} D={D:g} m +-{noise:g} mm A/D {'fixed' if fixed else 'free '} gate_legs={legs!s:<5}: "
+                f"delta_T/floor {dt_r:.2f}, delta_AD/floor {dad_r:.2f}, mean A error "
+                f"{np.mean(ea):+.3f} +- {np.std(ea, ddof=1) / math.sqrt(k):.3f} mm"
+            )
+
+
 def bias_study(k: int) -> None:
     """Mean errors (model frame) over ``k`` fits per cell, curvature correction on and off, plus
     the axis gate on a sharp joint and the floor of the points the gate keeps."""
@@ -218,9 +248,12 @@ def main(argv: Sequence[str] | None = None) -> None:
     ap.add_argument("--ours", type=int, default=0, help="fits per cell for our RMSE (0: none)")
     ap.add_argument("--no-compare", action="store_true", help="with --ours: skip the uncorrected fits")
     ap.add_argument("--bias", type=int, default=0, help="fits per cell of the bias study (0: skip it)")
+    ap.add_argument("--gate", type=int, default=0, help="fits per cell of the sharp-joint gate study (0: skip it)")
     args = ap.parse_args(argv)
     if args.bias:
         bias_study(args.bias)
+    if args.gate:
+        gate_study(args.gate)
     tables = set(args.tables.split(","))
     modes = [False, True] if args.ratio == "both" else [args.ratio == "fixed"]
     t0 = time.perf_counter()

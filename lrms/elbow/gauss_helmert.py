@@ -313,6 +313,7 @@ def fit_elbow(
     fallback: bool = True,
     axis_gate: float = AXIS_GATE,
     curvature_correction: bool = True,
+    gate_legs: bool = False,
 ) -> ElbowFit:
     """Adjust the elbow model to ``points`` (n, 3) from the initial values ``init``.
 
@@ -338,6 +339,9 @@ def fit_elbow(
     convex one, which inflates ``D`` by about ``sigma^2 / R`` and shifts ``A`` and the centre);
     the noise is ``cov`` when given, else the one that explains the current residual spread
     (:func:`noise_from_residual_sd`, re-estimated every iteration).
+    ``gate_legs``: apply the axis gate to the legs' points too (their inner side reaches the torus
+    axis where a sharp elbow's legs meet the bend); off by default: it removes joint c's remaining
+    bias but raises joint f's error (docs/elbow-accuracy.md).
     Raises :class:`FitError` for too few points, singular normal equations, no convergence, or a
     degenerate solution (``A < 0.45 D``).
     """
@@ -398,7 +402,7 @@ def fit_elbow(
         z = np.abs(fo) / sqm
         if robust or it == 1:  # the set of points used is frozen once the least-squares phase starts
             sig_r = 1.4826 * float(np.median(z))
-            use = _usable(pts, params, sig_r * np.sqrt(np.median(mm)), axis_gate)
+            use = _usable(pts, params, sig_r * np.sqrt(np.median(mm)), axis_gate, gate_legs)
         if np.count_nonzero(use) < max(MIN_POINTS, 3 * u):
             raise FitError("too few points away from the torus axis for an elbow fit")
         hub = math.inf
@@ -514,8 +518,8 @@ def fit_elbow(
     return replace(fit, sigmas=derived_sigmas(fit))
 
 
-def _usable(pts: FloatArray, p: ElbowParams, sigma: float, gate: float) -> NDArray[np.bool_]:
-    """Points used: all but bend points whose foot point lies within the axis gate.
+def _usable(pts: FloatArray, p: ElbowParams, sigma: float, gate: float, legs: bool = False) -> NDArray[np.bool_]:
+    """Points used: all but bend points (``legs``: all points) whose foot point lies within the axis gate.
 
     The gate radius is ``min(gate sigma, AXIS_GATE_MAX D/2)``; the foot point's distance from the
     torus axis is ``A + (D/2) cos(phi)`` (``phi`` around the tube), which noise along the surface
@@ -528,6 +532,10 @@ def _usable(pts: FloatArray, p: ElbowParams, sigma: float, gate: float) -> NDArr
     ev = evaluate_model(m, p.A, p.D, p.degree, p.Df)
     radius = min(gate * sigma, AXIS_GATE_MAX * p.D / 2)
     foot = p.A + (p.D / 2) * (ev.zp - p.A) / np.maximum(ev.s, 1e-300)
+    if legs:
+        # the foot point's distance from the axis: radial part and the part along the leg
+        along = -m[:, 0] * np.sin(ev.phi) + m[:, 2] * np.cos(ev.phi)
+        return np.asarray(np.hypot(foot, along) > radius)
     return np.asarray((ev.portion != BEND) | (foot > radius))
 
 
