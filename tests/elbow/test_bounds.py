@@ -156,3 +156,28 @@ def test_curvature_correction_removes_the_bias_at_high_noise() -> None:
     se_off = off.std(axis=0, ddof=1) / math.sqrt(k)
     assert off[:, 4].mean() > 10 * se_off[4]  # D: the uncorrected fit is biased
     assert off[:, 4].mean() == pytest.approx(sigma**2 / (j.truth.D / 2), rel=0.25)
+
+
+def test_gate_on_the_legs_leaves_out_only_points_near_the_torus_axis() -> None:
+    """Sharp joint c: with gate_legs the axis gate also takes the legs' points whose foot point is
+    within the gate radius of the torus axis, and nothing farther."""
+    from lrms.elbow.gauss_helmert import AXIS_GATE_MAX, _usable
+
+    j = make_joint("c", n_along=80, step_deg=2.0)
+    t = j.truth
+    sigma = 0.002
+    radius = min(3.0 * sigma, AXIS_GATE_MAX * t.D / 2)
+    m = t.to_model(j.points)
+    rho = np.hypot(m[:, 0], m[:, 2])  # noise-free points are their own foot points
+    bend_only = _usable(j.points, t, sigma, 3.0)
+    legs_too = _usable(j.points, t, sigma, 3.0, legs=True)
+    assert np.all(bend_only[j.portion != 1])  # the default keeps every leg point
+    dropped = ~legs_too
+    assert np.count_nonzero(dropped & (j.portion != 1)) > 0
+    assert np.all(rho[dropped] <= radius * (1 + 1e-9))
+    assert np.all(legs_too[rho > radius * 1.01])
+    noisy = j.points + np.random.default_rng(2).normal(0.0, sigma, j.points.shape)
+    f0 = fit_elbow(noisy, _perturbed(t))
+    f1 = fit_elbow(noisy, _perturbed(t), gate_legs=True)
+    assert f1.n < f0.n
+    assert abs(f1.params.A - t.A) < 5 * f1.sigmas["A_m"]
