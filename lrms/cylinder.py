@@ -26,7 +26,14 @@ Pipeline (:func:`fit_cylinder`; the details and measured numbers are in ``docs/c
      right fit for isotropic noise. On a one-sided view with range noise it is biased low.
 
 5. Up to ``DetectOptions.attempts`` RANSAC runs (more while no fit is explained by the noise
-   model); the best fit by :func:`_better` is returned.
+   model); the best fit by :func:`_better` is kept.
+6. **Selection by the scene model** (:func:`table_height`, :func:`_select_above_table`): the
+   table is the plane perpendicular to the fitted axis under the part; the part's beams are
+   those whose predicted first hit on the fitted part lies at least :data:`BASE_CLEARANCE` above
+   it and not above the part's top (:func:`_top_height`); refit on them.
+7. **Grazing weights** (:func:`grazing_weighted_fit`): the inliers are refitted with per-beam
+   variances ``sigma_l^2 + (tan(incidence) sigma_lat)^2``, which moderates the leverage of the
+   near-tangent limb beams (a trade of spread for a small bias, measured in docs/cylinder.md).
 
 The parameters' covariance is expressed in a local frame at the solution: ``theta = (t1, t2,
 s1, s2, r)``, the axis direction ``normalize(w + t1 e1 + t2 e2)``, the axis point ``a + s1 e1 +
