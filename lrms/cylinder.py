@@ -965,15 +965,17 @@ def grazing_weighted_fit(
     sub_pts, sub = pts[idx], rays.subset(idx)
     cyl = fit.cylinder
     work = np.arange(idx.size)
-    if idx.size > 20_000:  # all rounds but the last on a subset (large clouds)
-        work = np.sort(np.random.default_rng(3).choice(idx.size, 20_000, replace=False))
+    if idx.size > 10_000:  # all rounds but the last on a subset (large clouds)
+        work = np.sort(np.random.default_rng(3).choice(idx.size, 5_000, replace=False))
     try:
         for k in range(rounds):
             use = work if k < rounds - 1 else np.arange(idx.size)
             part = sub.subset(use)
             sig = grazing_sigmas(cyl, part, sigma_lat)
             weighted = Rays(part.origins, part.dirs, part.ranges, sig, part.sigma_perp)
-            cyl = refine_cylinder(sub_pts[use], cyl, rays=weighted, gate=np.inf, max_rounds=1).cylinder
+            # a large cloud's last round starts next to its optimum: a few LM steps suffice
+            nfev = 200 if use.size <= 10_000 or k < rounds - 1 else 4
+            cyl = refine_cylinder(sub_pts[use], cyl, rays=weighted, gate=np.inf, max_rounds=1, max_nfev=nfev).cylinder
     except FitError:
         return fit
     lo, hi = DetectOptions().radius_range
