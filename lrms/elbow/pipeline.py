@@ -8,6 +8,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from lrms.cylinder import Cylinder, refine_cylinder
 from lrms.elbow.gauss_helmert import ElbowFit, fit_elbow
 from lrms.elbow.initial import initial_candidates
 from lrms.elbow.model import BEND, END, START, ElbowParams, as_points, evaluate_model
@@ -20,6 +21,8 @@ FloatArray = NDArray[np.float64]
 MAX_SIGMA0_FRACTION = 0.3
 #: The points on the bend must cover at least this fraction of the fitted bend angle.
 MIN_BEND_SPAN = 0.3
+#: The straight-cylinder comparison fits the cylinder to at most this many random points.
+CYLINDER_SAMPLE = 5000
 #: Rounds of trimming at most.
 TRIM_ROUNDS = 8
 #: The end leg must be this much longer than the start leg before the two are swapped.
@@ -109,6 +112,7 @@ def fit_auto(
         if best is None or fit.sigma0 < best.sigma0:
             best = fit
     if best is not None:
+        _refuse_straight_cylinder(pts if best.inliers is None else pts[best.inliers], best, degree is None)
         return best
     if len(errors) == 1:
         raise FitError(errors[0])
@@ -174,6 +178,52 @@ def _fit_from(
         inliers=keep if trim is not None else None,
         residuals=_residuals(pts, fit.params) if trim is not None else fit.residuals,
     )
+
+
+def straight_cylinder_bic(points: ArrayLike, fit: ElbowFit, degree_estimated: bool) -> tuple[float, float]:
+    """BIC of the elbow ``fit`` and of a straight cylinder fitted to the same ``points``.
+
+    Both on the plain orthogonal residuals: ``n ln(RSS / n) + k ln n`` with ``k`` the free
+    parameters (the elbow's adjusted unknowns, plus one when its degree was estimated from the
+    data; the cylinder's 5: axis direction 2, axis point 2, radius 1). The cylinder is the
+    orthogonal-distance fit of :func:`lrms.cylinder.refine_cylinder` (isotropic, one round, no
+    inlier selection) from the principal axis of the points, on ``CYLINDER_SAMPLE`` random
+    points of larger clouds (its RSS is then taken over all points, so it can only come out a
+    little high: the doubt goes to the elbow). Returns ``(bic_elbow,
+    bic_cylinder)``; ``bic_cylinder`` is ``inf`` when the cylinder fit fails.
+    """
+    pts = as_points(points)
+    n = pts.shape[0]
+    rss_e = float(np.sum(np.square(_residuals(pts, fit.params))))
+    k_e = len(fit.names) + (1 if degree_estimated else 0)
+    sub = pts
+    if n > CYLINDER_SAMPLE:
+        sub = pts[np.random.default_rng(0).choice(n, CYLINDER_SAMPLE, replace=False)]
+    centroid = sub.mean(axis=0)
+    axis = np.linalg.eigh(np.cov(sub.T))[1][:, -1]
+    v = sub - centroid
+    r0 = float(np.median(np.linalg.norm(v - np.outer(v @ axis, axis), axis=1)))
+    try:
+        cyl = refine_cylinder(sub, Cylinder(centroid, axis, max(r0, 1e-6)), sigma=None, max_rounds=1).cylinder
+    except FitError:
+        return _bic(rss_e, n, k_e), math.inf
+    rss_c = float(np.sum(np.square(cyl.surface_distance(pts))))
+    return _bic(rss_e, n, k_e), _bic(rss_c, n, 5)
+
+
+def _bic(rss: float, n: int, k: int) -> float:
+    return n * math.log(max(rss, 1e-300) / n) + k * math.log(n)
+
+
+def _refuse_straight_cylinder(pts: FloatArray, fit: ElbowFit, degree_estimated: bool) -> None:
+    """Raise :class:`FitError` when a straight cylinder explains ``pts`` as well as the elbow."""
+    bic_e, bic_c = straight_cylinder_bic(pts, fit, degree_estimated)
+    if bic_c <= bic_e:
+        raise FitError(
+            f"no elbow: a straight cylinder fits the points as well (BIC {bic_c:.1f} for the cylinder, "
+            f"{bic_e:.1f} for the {math.degrees(fit.params.degree):.0f} deg elbow with sigma0 "
+            f"{fit.sigma0 * 1e3:.1f} mm, n = {pts.shape[0]})"
+        )
 
 
 def _residuals(pts: FloatArray, p: ElbowParams) -> FloatArray:

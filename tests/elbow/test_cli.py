@@ -103,6 +103,21 @@ def test_brackets_command(tmp_path: Path) -> None:
     assert text.returncode == 0 and "group 0:" in text.stdout and "bracket (group 0)" in text.stdout
 
 
+def test_noisy_straight_pipe_exits_1_naming_the_cylinder(tmp_path: Path) -> None:
+    """A straight pipe (D = 0.1 m, 0.5 m long, 2,000 points, noise 20 mm) that fit_auto used to
+    return as a sharp 45 deg elbow: refused with the straight-cylinder message and status 1."""
+    rng = np.random.default_rng(0)
+    t = rng.uniform(0, 0.5, 2000)
+    ang = rng.uniform(0, 2 * math.pi, 2000)
+    pipe = np.column_stack([t, 0.05 * np.cos(ang), 0.05 * np.sin(ang)]) + rng.normal(0, 0.02, (2000, 3))
+    f = tmp_path / "noisy_straight.xyz"
+    write_xyz(f, pipe)
+    proc = _lrms("fit", str(f), "--model", "elbow", "--json")
+    assert proc.returncode == 1 and proc.stdout == ""
+    assert proc.stderr.startswith("error: no elbow: a straight cylinder fits the points as well")
+    assert proc.stderr.count("\n") == 1
+
+
 def test_errors_exit_1_with_one_line(tmp_path: Path) -> None:
     few = tmp_path / "few.xyz"
     write_xyz(few, np.random.default_rng(0).normal(size=(20, 3)))

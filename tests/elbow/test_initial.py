@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 from lrms.elbow import ElbowFit, fit_auto, fit_elbow
 from lrms.elbow.initial import initial_candidates
 from lrms.elbow.model import ElbowParams
+from lrms.elbow.pipeline import straight_cylinder_bic
 from lrms.errors import FitError
 from sim.scene.joints import make_joint, random_pose
 
@@ -99,3 +100,33 @@ def test_clouds_that_are_no_elbow_are_refused() -> None:
         fit_auto(pipe)
     with pytest.raises(FitError, match="method"):
         initial_candidates(pipe, method="guess")
+
+
+def noisy_straight_pipe(seed: int, D: float = 0.1, n: int = 2000) -> np.ndarray:
+    """A straight pipe 5 D long, ``n`` points all round, Gaussian noise of 20 % of D per axis."""
+    rng = np.random.default_rng(seed)
+    t = rng.uniform(0, 5 * D, n)
+    a = rng.uniform(0, 2 * math.pi, n)
+    pipe = np.column_stack([t, D / 2 * np.cos(a), D / 2 * np.sin(a)])
+    return np.asarray(pipe + rng.normal(0, 0.2 * D, (n, 3)), dtype=np.float64)
+
+
+@pytest.mark.parametrize(("seed", "D"), [(0, 0.1), (3, 0.1), (0, 0.2)])
+def test_short_noisy_straight_pipe_is_refused_by_the_cylinder_comparison(seed: int, D: float) -> None:
+    """Issue 5: with 2,000 points these clouds passed the sigma0 and bend-coverage checks and came
+    out as sharp 45 deg elbows; the comparison with a straight cylinder refuses them."""
+    pipe = noisy_straight_pipe(seed, D)
+    with pytest.raises(FitError, match=r"^no elbow: a straight cylinder fits the points as well \(BIC "):
+        fit_auto(pipe, rng=np.random.default_rng(0))
+
+
+def test_the_cylinder_comparison_keeps_a_noisy_elbow() -> None:
+    """The same comparison on a real elbow at the same noise (joint b, 20 % of D): the elbow's BIC
+    is far below the straight cylinder's, and fit_auto returns the elbow."""
+    rng = np.random.default_rng(7)
+    c, rot = random_pose(rng)
+    j = make_joint("b", D=0.1, center=c, rot=rot, noise=0.02, n_along=60, step_deg=4.0, rng=rng)
+    fit = fit_auto(j.points, rng=np.random.default_rng(0))
+    bic_e, bic_c = straight_cylinder_bic(j.points, fit, True)
+    assert bic_c - bic_e > 100.0
+    _assert_within_own_sigma(fit, j.truth)
