@@ -91,7 +91,8 @@ def fit_auto(
     fit whose residual spread ``sigma0`` exceeds ``max_spread`` times ``D`` (default
     ``MAX_SIGMA0_FRACTION``) is rejected as "not an elbow"; raise it for clouds known to be
     that noisy (seed 000's Table 6: noise of 40 % of D gives ``sigma0`` of 30-40 % of the fitted
-    ``D``).
+    ``D``). Last, a fit that a straight cylinder explains as well (by BIC on the orthogonal
+    residuals, :func:`straight_cylinder_bic`) is rejected as "no elbow" too.
     """
     pts = as_points(points)
     if trim is not None and trim <= 0:
