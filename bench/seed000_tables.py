@@ -150,6 +150,7 @@ def run_cell(
     auto: bool = True,
     fixed_ratio: bool = False,
     max_spread: float = MAX_SIGMA0_FRACTION,
+    straight_check: bool = True,
 ) -> Cell:
     spec = TABLE1[joint]
     ratio = spec.ratio if fixed_ratio else None
@@ -166,7 +167,12 @@ def run_cell(
         try:
             if auto:
                 fit = fit_auto(
-                    j.points, ratio=ratio, flange=spec.flange, rng=np.random.default_rng(0), max_spread=max_spread
+                    j.points,
+                    ratio=ratio,
+                    flange=spec.flange,
+                    rng=np.random.default_rng(0),
+                    max_spread=max_spread,
+                    straight_check=straight_check,
                 )
             else:
                 fit = fit_elbow(j.points, _perturbed(j.truth), ratio=ratio, flange=spec.flange)
@@ -243,12 +249,15 @@ def table_tr(
     auto: bool = True,
     fixed_ratio: bool = False,
     max_spread: float = MAX_SIGMA0_FRACTION,
+    straight_check: bool = True,
 ) -> dict[str, list[Cell]]:
     start = "automatic start" if auto else "start: truth perturbed"
     rt = "A/D fixed" if fixed_ratio else "A/D free"
     print(f"\n{title}  (ours / seed; dT mm, dR deg; {reps} reps, {kind} noise, {start}, {rt})")
     if max_spread != MAX_SIGMA0_FRACTION:
         print(f"(fit_auto's no-elbow limit raised to sigma0 < {max_spread:.0%} of D for this noise)")
+    if not straight_check:
+        print("(fit_auto's straight-cylinder check off: the joint is known to be an elbow; see --t6-checks)")
     head = f"{'joint':<22}" + "".join(f"{'+-' + format(n, 'g') + ' mm':>36}" for n in noises)
     print(head)
     print(f"{'':<22}" + "".join(f"{'dT ours/seed':>18}{'dR ours/seed':>18}" for _ in noises))
@@ -268,6 +277,7 @@ def table_tr(
                 auto=auto,
                 fixed_ratio=fixed_ratio,
                 max_spread=max_spread,
+                straight_check=straight_check,
             )
             cells.append(cell)
             sv = seed_tab[r][k]
@@ -466,6 +476,13 @@ def main(argv: Sequence[str] | None = None) -> None:
         default="auto",
         help="Table 6, coverage study, Table 7: automatic initial values (default) or the truth perturbed",
     )
+    ap.add_argument(
+        "--t6-checks",
+        choices=["known-elbow", "straight-check"],
+        default="known-elbow",
+        help="Table 6 (sigma0 limit raised to 60 %% of D in both): fit a joint known to be an elbow "
+        "(default), or also run fit_auto's straight-cylinder check, as `lrms fit` does",
+    )
     args = ap.parse_args(argv)
     parts = set(args.only.split(","))
     fixed = args.ratio == "fixed"
@@ -496,6 +513,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                 auto=auto,
                 fixed_ratio=fixed,
                 max_spread=T6_MAX_SPREAD,
+                straight_check=args.t6_checks == "straight-check",
             )
         if "cov" in parts:
             coverage_study(args.full_coverage, max(1, args.reps // 2), kind, args.plot, auto=auto)

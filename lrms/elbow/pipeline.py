@@ -76,6 +76,7 @@ def fit_auto(
     max_iter: int = 60,
     rng: np.random.Generator | None = None,
     max_spread: float = MAX_SIGMA0_FRACTION,
+    straight_check: bool = True,
 ) -> ElbowFit:
     """Fit an elbow to ``points`` without manual start values.
 
@@ -92,7 +93,10 @@ def fit_auto(
     ``MAX_SIGMA0_FRACTION``) is rejected as "not an elbow"; raise it for clouds known to be
     that noisy (seed 000's Table 6: noise of 40 % of D gives ``sigma0`` of 30-40 % of the fitted
     ``D``). Last, a fit that a straight cylinder explains as well (by BIC on the orthogonal
-    residuals, :func:`straight_cylinder_bic`) is rejected as "no elbow" too.
+    residuals, :func:`straight_cylinder_bic`) is rejected as "no elbow" too, unless
+    ``straight_check`` is false: for a cloud known to be an elbow at noise of 30 % of ``D`` and
+    more, where the orthogonal residuals of the true elbow itself are no smaller than those of a
+    fat straight cylinder, so that the comparison can no longer tell (docs/elbow-model.md).
     """
     pts = as_points(points)
     if trim is not None and trim <= 0:
@@ -113,7 +117,8 @@ def fit_auto(
         if best is None or fit.sigma0 < best.sigma0:
             best = fit
     if best is not None:
-        _refuse_straight_cylinder(pts if best.inliers is None else pts[best.inliers], best, degree is None)
+        if straight_check:
+            _refuse_straight_cylinder(pts if best.inliers is None else pts[best.inliers], best, degree is None)
         return best
     if len(errors) == 1:
         raise FitError(errors[0])

@@ -130,3 +130,14 @@ def test_the_cylinder_comparison_keeps_a_noisy_elbow() -> None:
     bic_e, bic_c = straight_cylinder_bic(j.points, fit, True)
     assert bic_c - bic_e > 100.0
     _assert_within_own_sigma(fit, j.truth)
+
+
+def test_straight_check_false_leaves_the_decision_to_the_caller() -> None:
+    """``straight_check=False`` (a cloud the caller knows to be an elbow, seed 000's Table 6) skips
+    only the cylinder comparison: the pipe it refuses above comes back as the elbow fit it was
+    before the comparison existed, with its sigmas, for the caller to judge."""
+    pipe = noisy_straight_pipe(0, 0.1)
+    fit = fit_auto(pipe, rng=np.random.default_rng(0), straight_check=False)
+    assert fit.converged
+    bic_e, bic_c = straight_cylinder_bic(pipe, fit, True)
+    assert bic_c <= bic_e  # the comparison would have refused it
