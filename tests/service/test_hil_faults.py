@@ -29,7 +29,7 @@ from service.api import ServerThread, create_app
 from service.config import RigConfig, parse_toml
 from service.rig import build_service
 from tests.conftest import REPO
-from tests.service.test_rig_sim import AUTH, FAST, TOKEN, _check_cylinder, _wait, _wait_sweeping
+from tests.service.test_rig_sim import AUTH, FAST, _check_cylinder, _wait, _wait_sweeping, hil_config_text
 
 
 class RigProcess:
@@ -74,22 +74,7 @@ def rig_process() -> Iterator[RigProcess]:
 
 
 def _config(urls: dict[str, str], data_dir: Path) -> RigConfig:
-    return parse_toml(
-        f"""
-        name = "hil"
-        [scanner]
-        url = "{urls["scanner_url"]}"
-        [motor]
-        url = "{urls["motor_url"]}"
-        [storage]
-        dir = "{data_dir}"
-        [auth]
-        token = "{TOKEN}"
-        [fit]
-        roi_min_m = [0.12, 2.30, -0.09]
-        roi_max_m = [0.44, 2.76, 0.75]
-        """
-    )
+    return parse_toml(hil_config_text(urls, data_dir))
 
 
 @pytest.fixture
@@ -223,23 +208,7 @@ def test_restart_with_queued_work_runs_the_queued_measurement(rig_process: RigPr
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]
     config = tmp_path / "rig.toml"
-    urls = rig_process.urls
-    config.write_text(
-        f"""
-        name = "hil"
-        [scanner]
-        url = "{urls["scanner_url"]}"
-        [motor]
-        url = "{urls["motor_url"]}"
-        [storage]
-        dir = "{tmp_path}"
-        [auth]
-        token = "{TOKEN}"
-        [fit]
-        roi_min_m = [0.12, 2.30, -0.09]
-        roi_max_m = [0.44, 2.76, 0.75]
-        """.replace("\n        ", "\n")
-    )
+    config.write_text(hil_config_text(rig_process.urls, tmp_path))
     url = f"http://127.0.0.1:{port}"
     slow = {"target": "cylinder", "sweep": {"speed_deg_s": 5.0}}
     proc = _serve(config, port)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import textwrap
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -68,16 +69,18 @@ def sim_process() -> Iterator[dict[str, str]]:
     proc.wait(timeout=20)
 
 
-def test_measures_the_cylinder_with_the_rig_in_another_process(sim_process: dict[str, str], tmp_path: Path) -> None:
-    cfg = parse_toml(
+def hil_config_text(urls: dict[str, str], data_dir: Path) -> str:
+    """The rig TOML of the hardware-in-the-loop tests: the rig process's ``scanner_url`` and
+    ``motor_url``, storage in ``data_dir``, the test token, the seed 003 part's region of interest."""
+    return textwrap.dedent(
         f"""
         name = "hil"
         [scanner]
-        url = "{sim_process["scanner_url"]}"
+        url = "{urls["scanner_url"]}"
         [motor]
-        url = "{sim_process["motor_url"]}"
+        url = "{urls["motor_url"]}"
         [storage]
-        dir = "{tmp_path}"
+        dir = "{data_dir}"
         [auth]
         token = "{TOKEN}"
         [fit]
@@ -85,6 +88,10 @@ def test_measures_the_cylinder_with_the_rig_in_another_process(sim_process: dict
         roi_max_m = [0.44, 2.76, 0.75]
         """
     )
+
+
+def test_measures_the_cylinder_with_the_rig_in_another_process(sim_process: dict[str, str], tmp_path: Path) -> None:
+    cfg = parse_toml(hil_config_text(sim_process, tmp_path))
     svc, rig = build_service(cfg)
     try:
         with ServerThread(create_app(svc)) as srv, httpx.Client(base_url=srv.url, timeout=30) as client:
