@@ -118,7 +118,7 @@ def fit_auto(
             best = fit
     if best is not None:
         if straight_check:
-            _refuse_straight_cylinder(pts if best.inliers is None else pts[best.inliers], best, degree is None)
+            _refuse_straight_cylinder(pts, best, degree is None)
         return best
     if len(errors) == 1:
         raise FitError(errors[0])
@@ -186,7 +186,9 @@ def _fit_from(
     )
 
 
-def straight_cylinder_bic(points: ArrayLike, fit: ElbowFit, degree_estimated: bool) -> tuple[float, float]:
+def straight_cylinder_bic(
+    points: ArrayLike, fit: ElbowFit, degree_estimated: bool, residuals: ArrayLike | None = None
+) -> tuple[float, float]:
     """BIC of the elbow ``fit`` and of a straight cylinder fitted to the same ``points``.
 
     Both on the plain orthogonal residuals: ``n ln(RSS / n) + k ln n`` with ``k`` the free
@@ -196,11 +198,13 @@ def straight_cylinder_bic(points: ArrayLike, fit: ElbowFit, degree_estimated: bo
     inlier selection) from the principal axis of the points, on ``CYLINDER_SAMPLE`` random
     points of larger clouds (its RSS is then taken over all points, so it can only come out a
     little high: the doubt goes to the elbow). Returns ``(bic_elbow,
-    bic_cylinder)``; ``bic_cylinder`` is ``inf`` when the cylinder fit fails.
+    bic_cylinder)``; ``bic_cylinder`` is ``inf`` when the cylinder fit fails. ``residuals``: the
+    elbow's orthogonal distances of ``points`` when the caller has them (else computed).
     """
     pts = as_points(points)
     n = pts.shape[0]
-    rss_e = float(np.sum(np.square(_residuals(pts, fit.params))))
+    res = _residuals(pts, fit.params) if residuals is None else np.asarray(residuals, dtype=np.float64)
+    rss_e = float(np.sum(np.square(res)))
     k_e = len(fit.names) + (1 if degree_estimated else 0)
     sub = pts
     if n > CYLINDER_SAMPLE:
@@ -222,8 +226,10 @@ def _bic(rss: float, n: int, k: int) -> float:
 
 
 def _refuse_straight_cylinder(pts: FloatArray, fit: ElbowFit, degree_estimated: bool) -> None:
-    """Raise :class:`FitError` when a straight cylinder explains ``pts`` as well as the elbow."""
-    bic_e, bic_c = straight_cylinder_bic(pts, fit, degree_estimated)
+    """Raise :class:`FitError` when a straight cylinder explains ``fit``'s points (``pts``, or its
+    ``inliers`` of them) as well as the elbow."""
+    keep = slice(None) if fit.inliers is None else fit.inliers
+    bic_e, bic_c = straight_cylinder_bic(pts[keep], fit, degree_estimated, fit.residuals[keep])
     if bic_c <= bic_e:
         raise FitError(
             f"no elbow: a straight cylinder fits the points as well (BIC {bic_c:.1f} for the cylinder, "
