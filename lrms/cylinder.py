@@ -945,7 +945,12 @@ def grazing_sigmas(cyl: Cylinder, rays: Rays, sigma_lat: float) -> FloatArray:
 
 
 def grazing_weighted_fit(
-    pts: FloatArray, rays: Rays, fit: CylinderFit, sigma_lat: float = GRAZING_SIGMA, rounds: int = 3
+    pts: FloatArray,
+    rays: Rays,
+    fit: CylinderFit,
+    sigma_lat: float = GRAZING_SIGMA,
+    rounds: int = 3,
+    radius_range: tuple[float, float] | None = None,
 ) -> CylinderFit:
     """Refit ``fit``'s inliers with the near-grazing beams' leverage moderated.
 
@@ -957,7 +962,7 @@ def grazing_weighted_fit(
     ``rounds`` rounds. An estimator choice: the Cramer-Rao bound is unchanged. The covariance
     is the sandwich ``A^-1 J^T V J A^-1`` of this weighted fit under the rig's noise
     (``V = sigma_l^2 / s_i^2``), ``chi2_dof`` the plain one with ``sigma_l``. Keeps ``fit`` if a
-    refit fails.
+    refit fails or leaves ``radius_range`` (the detection's; default ``DetectOptions()``'s).
     """
     if sigma_lat <= 0 or not fit.line_of_sight:
         return fit
@@ -978,7 +983,7 @@ def grazing_weighted_fit(
             cyl = refine_cylinder(sub_pts[use], cyl, rays=weighted, gate=np.inf, max_rounds=1, max_nfev=nfev).cylinder
     except FitError:
         return fit
-    lo, hi = DetectOptions().radius_range
+    lo, hi = DetectOptions().radius_range if radius_range is None else radius_range
     if not lo <= cyl.radius <= hi:
         return fit
     sig = grazing_sigmas(cyl, sub, sigma_lat)
@@ -1175,7 +1180,9 @@ def fit_cylinder(
                 up, height, origin = table
                 base = best.cylinder.point + (height - float((best.cylinder.point - origin) @ up)) * up
     if rr is not None:
-        best = grazing_weighted_fit(pts, rr, best, GRAZING_SIGMA if opt.grazing_sigma < 0 else opt.grazing_sigma)
+        best = grazing_weighted_fit(
+            pts, rr, best, GRAZING_SIGMA if opt.grazing_sigma < 0 else opt.grazing_sigma, radius_range=opt.radius_range
+        )
     return CylinderFit(
         cylinder=best.cylinder,
         inliers=best.inliers,
