@@ -345,6 +345,9 @@ def test_with_reconnect_a_request_timeout_starts_a_fresh_connection(clients: lis
         with pytest.raises(DeviceTimeoutError):
             c.serial_number()
         wait_for(lambda: c.stats.reconnects == 1)
+        # the client's connect completes in the listener's backlog; the peer only counts the new link once
+        # it has seen the old one close, so wait for its accept rather than read the counter at once
+        wait_for(lambda: peer.accepted == 2)
         assert peer.accepted == 2
         st = c.stats
         assert (st.timeouts, st.connection_losses) == (1, 1)
