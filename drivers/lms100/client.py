@@ -718,6 +718,8 @@ class ScannerClient:
             if current:
                 self._link = None
                 self._ready.clear()
+                # counted before a reconnect can start: no snapshot shows the reconnect without its loss
+                self._stats.add("connection_losses")
             if self._pending is not None and self._pending.link is link:
                 self._fail_pending(DeviceConnectionError(f"{self.address}: {reason}"))
             if current and not self._closing.is_set():
@@ -733,7 +735,6 @@ class ScannerClient:
         link.close()
         if not current:
             return
-        self._stats.add("connection_losses")
         log.warning("%s: link lost (%s)", self.address, reason)
         if fatal is not None:
             self._queue.fail(fatal)
@@ -768,9 +769,11 @@ class ScannerClient:
             with self._state:
                 if not link.alive or self._link is not link:
                     continue
+                # counted in the same step that publishes the link: once connected (or once close() finds
+                # no reconnect thread to join) the stats include this reconnect
+                self._stats.add("reconnects")
                 self._reconnector = None
                 self._ready.set()
-            self._stats.add("reconnects")
             log.warning("%s: reconnected after %d attempt(s); session restored", self.address, attempt)
             return
         error = DeviceConnectionError(f"{self.address}: gave up reconnecting after {attempt} attempt(s)")
