@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import socket
+import time
 
 import numpy as np
 import pytest
 
 from drivers.errors import DeviceURLError
+from drivers.lms100.client import ScannerStateError
 from drivers.url import open_device
 from sim.scanner import ScannerServer, SimulatorError
 from sim.scene import SensorModel
@@ -34,14 +36,26 @@ def test_sim_url_opens_a_connected_client_and_closes_the_server(cola: str) -> No
 
 
 def test_dropped_connection_reconnects_and_the_gap_is_counted() -> None:
-    with open_device("scanner", "sim://?scene=seed003&realtime=0&timeout=2&backoff=0.05") as client:
+    with open_device("scanner", "sim://?scene=seed003&realtime=0&timeout=10&backoff=0.05") as client:
         client.start_streaming()
         first = [s.scan_counter for s in client.scans(30)]
         assert np.all(np.diff(first) == 1)
         assert client.sim_server.drop_clients() == 1
-        later = [s.scan_counter for s in client.scans(30)]
+        # The queue may still hold scans of the old link: read on until the client has reconnected (keep
+        # reading meanwhile, or the fast stream overflows the queue) and 30 scans were read.
+        later: list[int] = []
+        deadline = time.monotonic() + 30.0  # against a hang, not a timing check
+        while len(later) < 30 or not client.connected or client.stats.reconnects < 1:
+            assert time.monotonic() < deadline, "the client did not reconnect"
+            later.append(client.next_scan().scan_counter)
+        client.close()  # its threads end: the stats are final
+        while True:  # and the scans still queued belong to the record too
+            try:
+                later.append(client.next_scan(0.0).scan_counter)
+            except ScannerStateError:
+                break
         stats = client.stats
-        assert stats.reconnects == 1 and stats.connection_losses == 1
+        assert stats.reconnects == 1 and stats.connection_losses == 1 and stats.queue_drops == 0
         # Counters only grow; any scans made while the link was down show up as lost, never hidden.
         assert later[0] > first[-1]
         assert stats.lost == sum(np.diff([first[-1], *later]) - 1)
