@@ -219,7 +219,8 @@ def test_injected_stall_following_error_fault(motor: Cia402CanMotor) -> None:
 
 
 def test_heartbeat_loss_is_a_fault_until_it_returns() -> None:
-    with open_device("motor", "sim://?node=5&heartbeat_ms=40", config=FAST) as motor:
+    # lost after 5 x 100 ms, as in the fixture: a shorter period lets a busy test machine fake a loss
+    with open_device("motor", "sim://?node=5&heartbeat_ms=100", config=FAST) as motor:
         assert isinstance(motor, Cia402CanMotor)
         heartbeat_loss_round_trip(motor)
 
@@ -237,6 +238,9 @@ def heartbeat_loss_round_trip(motor: Cia402CanMotor) -> None:
     # the driver asked the silent drive for a quick stop
     wait_for(lambda: drive_of(motor).state is State.SWITCH_ON_DISABLED)
     drive_of(motor).clear_injected()
+    # the reset clears the fault once a heartbeat came after it (it waits only a few periods for one): wait
+    # for the drive's next heartbeat to reach the driver rather than race the node's ticker thread
+    wait_for(lambda: motor._last_heartbeat is not None and motor._last_heartbeat > fault.t_host_s)
     motor.reset_fault()
     assert motor.fault() is None
     motor.enable()
