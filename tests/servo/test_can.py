@@ -341,6 +341,16 @@ def test_passive_second_master_watches_without_disturbing() -> None:
                 assert len(theirs) >= 20 and theirs <= mine
             owner.stop()
             owner.wait_reached(2.0)
+        # the node answers frames in order: once it has answered an SDO request sent after the owner's last
+        # SYNC, the TPDOs for all of the owner's SYNCs are out, and a late one cannot reach the next master
+        probe = can.Bus(interface="virtual", channel=channel)
+        try:
+            probe.send(can.Message(arbitration_id=0x602, data=[0x40, 0x41, 0x60, 0, 0, 0, 0, 0], is_extended_id=False))
+            deadline = time.monotonic() + 10.0
+            while (msg := probe.recv(max(0.0, deadline - time.monotonic()))) is None or msg.arbitration_id != 0x582:
+                assert time.monotonic() < deadline, "the node never answered the SDO request"
+        finally:
+            probe.shutdown()
         # alone on the bus (no SYNC anywhere): status by SDO, no samples
         with Cia402CanMotor.open_bus(bus_kw, CanUrlOptions(node=2, setup=False, sync_hz=0), config=FAST) as alone:
             assert alone.state is State.OPERATION_ENABLED
