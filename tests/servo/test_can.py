@@ -378,12 +378,14 @@ def test_late_tpdos_keep_their_own_sync_stamp() -> None:
         wait_for(lambda: abs(math.degrees(m.velocity_rad_s()) - 30.0) < 0.1)
         node.tpdo_latency_s = 0.015
         t0 = m.clock() + 0.1
-        wait_for(lambda: len(m.samples_since(t0)) >= 40, timeout=10.0)
+        wait_for(lambda: len(m.samples_since(t0)) >= 40)
+        # samples first, then the histories: a sample read after them could answer a SYNC they do not hold
+        # yet (the SYNCs go on at 100 Hz); a SYNC is in both histories before its answer is sampled
+        samples = m.samples_since(t0)
         sent = list(m.sync_history)
         latched = [p for _, p in node.sync_log]
         assert len(sent) < 4096 and len(latched) < 2000  # nothing dropped from either history
         index = {t: i for i, t in enumerate(sent)}
-        samples = m.samples_since(t0)
         for s in samples:
             i = index[s.t_host_s]  # every stamp is the send time of one of our SYNCs
             assert FAST.rad_to_counts(s.position_rad) == latched[i]
@@ -405,9 +407,10 @@ def test_lost_tpdo_answers_are_detected_and_pairing_recovers() -> None:
         wait_for(lambda: m.resyncs >= 1, timeout=5.0)
         t0 = m.clock() + 0.05
         wait_for(lambda: len(m.samples_since(t0)) >= 20)
+        samples = m.samples_since(t0)  # before the histories, as in the test above
         index = {t: i for i, t in enumerate(m.sync_history)}
         latched = [p for _, p in node.sync_log]
-        for s in m.samples_since(t0):
+        for s in samples:
             assert FAST.rad_to_counts(s.position_rad) == latched[index[s.t_host_s]]
         assert m.resyncs == 1
         m.stop()
