@@ -220,13 +220,25 @@ def test_lrms_motor_against_lrms_sim_motor_subprocess() -> None:
             while motor.fault() is None:
                 assert time.monotonic() < deadline
                 time.sleep(0.01)
+            fault = motor.fault()
+            assert fault is not None
             with pytest.raises(HeartbeatLost):
                 motor.move_to(0.0)
             assert command("clear") == "ok cleared"
+            # the reset clears the fault once a heartbeat came after it (it waits only a few periods for one):
+            # wait for the other process's next heartbeat to arrive here rather than race it
+            deadline = time.monotonic() + 15.0
+            while motor._last_heartbeat is None or motor._last_heartbeat <= fault.t_host_s:
+                assert time.monotonic() < deadline, "the drive's heartbeat never came back"
+                time.sleep(0.01)
             motor.reset_fault()
             assert motor.fault() is None
-            status = command("status")
-            assert status.startswith("ok Switch on disabled")  # the driver's quick stop after the loss
+            # the driver's quick stop after the loss (sent from its own thread, then the drive's ramp): wait
+            # for the drive to get there rather than read its state at once
+            deadline = time.monotonic() + 15.0
+            while not (status := command("status")).startswith("ok Switch on disabled"):
+                assert time.monotonic() < deadline, status
+                time.sleep(0.02)
             assert command("inject gremlins").startswith("error unknown fault kind")
         finally:
             motor.close()
