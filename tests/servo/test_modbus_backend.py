@@ -221,8 +221,9 @@ def test_a_silent_drive_becomes_a_fault_and_recovers(motor: ModbusMotor, server:
 # ------------------------------------------------------------------------ timeouts and retries
 @pytest.fixture
 def quiet_motor(server: ModbusDriveServer) -> Iterator[ModbusMotor]:
-    """A motor without the poll thread, so that every transaction is the test's own."""
-    m = open_url(server.url + "&timeout=0.25&retries=2&poll_hz=0", config=CONFIG)
+    """A motor without the poll thread, so that every transaction is the test's own. A generous response
+    timeout: it bounds answers that must come (the test about timeouts lowers it itself)."""
+    m = open_url(server.url + "&timeout=2&retries=2&poll_hz=0", config=CONFIG)
     try:
         yield m
     finally:
@@ -241,6 +242,7 @@ def test_silent_slave_times_out_after_the_retries(quiet_motor: ModbusMotor, serv
     assert quiet_motor.client.stats.timeouts == 3
     assert quiet_motor.client.stats.failures == 1
     server.silent = False
+    quiet_motor.client.timeout = 2.0  # an answer must come now: not within 30 ms on a busy machine
     assert cia402.decode_state(quiet_motor._read_object(cia402.STATUSWORD)) is State.SWITCH_ON_DISABLED
 
 
