@@ -98,6 +98,9 @@ def test_a_reply_in_chunks_a_few_ms_apart_is_one_frame(make_client) -> None:  # 
         return [(0.0, r[:1]), (0.004, r[1:3]), (0.004, r[3:])]  # like a USB adapter's latency timer
 
     client, _slave = make_client(script)
+    # the chunks are a few ms apart, but the slave thread's sleeps can stretch on a busy machine: a generous
+    # slack for the rest of the frame (what is tested is that the chunks make one frame, not the slack)
+    client.frame_slack = 2.0
     assert client.read_registers(0x6640, 2) == (0x1234, 0x5678)
     assert client.stats.attempts == 1
 
