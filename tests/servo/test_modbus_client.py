@@ -78,7 +78,7 @@ def make_client() -> Iterator[Callable[[Script], tuple[ModbusRtuClient, Scripted
         port = serial.serial_for_url(slave.path, baudrate=115200, timeout=0.005)
         made.append((port, slave))
         # a generous response timeout: only the tests about timeouts wait for one (they lower it themselves)
-        return ModbusRtuClient(port, unit=1, timeout=0.5, retries=2, timing=RtuTiming(115200)), slave
+        return ModbusRtuClient(port, unit=1, timeout=2.0, retries=2, timing=RtuTiming(115200)), slave
 
     yield make
     for port, slave in made:
@@ -116,8 +116,11 @@ def test_a_late_reply_to_a_timed_out_request_is_not_taken_for_the_next(make_clie
     client.timeout = 0.1
     with pytest.raises(ModbusTimeoutError, match="no reply"):
         client.read_registers(0x6640, 2)
+    deadline = time.monotonic() + 10.0
     while slave.answered < 1:  # wait until the stale reply is waiting in the input buffer
+        assert time.monotonic() < deadline
         time.sleep(0.01)
+    client.timeout = 2.0  # this answer must come: not within 100 ms on a busy machine
     assert client.read_registers(0x6640, 2) == (2, 2)
 
 
