@@ -172,6 +172,12 @@ def test_back_to_back_requests_and_an_abandoned_frame(pty_port: tuple[serial.Ser
     assert port.read(16) == a + b
     assert srv.drive.state is State.SWITCHED_ON
     port.write(b[:5])  # the master gives up half-way
+    # the slave closes the abandoned frame after its silent interval: wait for that before the next request
+    # (a slave thread stalled on a busy machine would otherwise read both in one go, with no silence between)
+    deadline = time.monotonic() + 10.0
+    while srv.stats.incomplete < 1:
+        assert time.monotonic() < deadline, "the abandoned frame was never closed"
+        time.sleep(0.005)
     port.timeout = 0.1
     assert port.read(1) == b""
     port.timeout = 0.5
