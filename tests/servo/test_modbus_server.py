@@ -136,7 +136,7 @@ def test_any_well_formed_request_gets_a_reply_or_an_exception(address: int, coun
 def pty_port() -> Iterator[tuple[serial.SerialBase, ModbusDriveServer]]:
     srv = start_from_url("modbus-rtu://")
     path = srv.url.removeprefix("modbus-rtu://").split("?")[0]
-    port = serial.serial_for_url(path, baudrate=115200, timeout=0.5)
+    port = serial.serial_for_url(path, baudrate=115200, timeout=10.0)  # reads return once the bytes are in
     try:
         yield port, srv
     finally:
@@ -180,7 +180,7 @@ def test_back_to_back_requests_and_an_abandoned_frame(pty_port: tuple[serial.Ser
         time.sleep(0.005)
     port.timeout = 0.1
     assert port.read(1) == b""
-    port.timeout = 0.5
+    port.timeout = 10.0
     assert cia402.decode_state(read_status(port)) is State.SWITCHED_ON
     assert srv.stats.incomplete == 1
 
@@ -214,4 +214,4 @@ def test_serve_forever_returns_when_closed() -> None:
 
     threading.Thread(target=run, daemon=True).start()
     srv.close()
-    assert done.wait(2.0)
+    assert done.wait(10.0)
