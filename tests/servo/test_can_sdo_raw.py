@@ -22,7 +22,7 @@ class Client:
 
     def request(self, data: bytes) -> bytes:
         self.bus.send(can.Message(arbitration_id=0x600 + NODE, data=data.ljust(8, b"\x00"), is_extended_id=False))
-        deadline = time.monotonic() + 1.0
+        deadline = time.monotonic() + 10.0  # against a hang: an answer must come
         while (remaining := deadline - time.monotonic()) > 0:
             msg = self.bus.recv(remaining)
             if msg is not None and msg.arbitration_id == 0x580 + NODE:
