@@ -5,8 +5,15 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, settings
 
 import service.simdevices  # noqa: F401  (registers the sim:// device URLs, as the CLI and service do)
+
+# No per-example deadline (200 ms by default) and no "too slow" health check: both time the machine, and a
+# stall on a loaded CI machine fails them with no bug. The properties stay as they are; pytest-timeout
+# catches hangs. A test's own @settings still chooses its example count.
+settings.register_profile("lrms", deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("lrms")
 
 REPO = Path(__file__).resolve().parent.parent
 SHARED = REPO.parent / "shared"
