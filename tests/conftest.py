@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 
 import pytest
@@ -14,6 +15,12 @@ import service.simdevices  # noqa: F401  (registers the sim:// device URLs, as t
 # catches hangs. A test's own @settings still chooses its example count.
 settings.register_profile("lrms", deadline=None, suppress_health_check=[HealthCheck.too_slow])
 settings.load_profile("lrms")
+
+# Started as a background job of a script (``.ci/run &``, ``cmd & wait``), this process inherits SIGINT
+# ignored, and so would every ``lrms sim ...`` child a test stops with SIGINT: it would never stop. Let
+# SIGINT interrupt again (children then start with the default disposition, as from a terminal).
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 REPO = Path(__file__).resolve().parent.parent
 SHARED = REPO.parent / "shared"
