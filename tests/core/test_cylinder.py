@@ -14,6 +14,7 @@ from lrms.cylinder import (
     DetectOptions,
     _Frame,
     _top_height,
+    bias_corrected,
     central_jacobian,
     estimate_normals,
     fit_cylinder,
@@ -25,6 +26,8 @@ from lrms.cylinder import (
     orthogonal_jacobian,
     orthogonal_residuals,
     rays_from_points,
+    refine_cylinder,
+    second_order_bias,
     support_plane,
 )
 from lrms.errors import FitError
@@ -232,3 +235,45 @@ def test_grazing_weights_and_the_weighted_fit_on_exact_data() -> None:
     assert weighted.chi2_dof < 1e-6
     assert weighted.std_diameter >= plain.std_diameter * (1 - 1e-6)
     assert weighted.std_diameter < 1.5 * plain.std_diameter
+
+
+def test_second_order_bias_predicts_the_fits_monte_carlo_bias() -> None:
+    """The line-of-sight ML fit is biased upward by the silhouette beams' curvature; the predicted
+    second-order bias matches a Monte Carlo of the fit, and subtracting it leaves no bias. A coarse
+    beam grid (1 deg, 438 beams) makes the bias large against its standard error."""
+    r = 0.06875
+    truth = seed.sweep_points(radius=r, step_alpha_deg=1.0, step_beta_deg=1.0)
+    cyl = seed.seed_cylinder(r)
+    rng = np.random.default_rng(11)
+    raw, pred, corrected = [], [], []
+    for _ in range(250):
+        pts, rays = seed.noisy_scan(truth, NM, rng)
+        fit = refine_cylinder(pts, cyl, rays=rays, gate=np.inf, max_rounds=1)
+        b = second_order_bias(fit, rays)
+        raw.append(fit.diameter - cyl.diameter)
+        pred.append(2 * b[4])
+        corrected.append(bias_corrected(fit, rays).diameter - cyl.diameter)
+    se = np.std(raw, ddof=1) / np.sqrt(len(raw))
+    assert np.mean(raw) > 3 * se  # the bias is real
+    assert abs(np.mean(pred) - np.mean(raw)) < 3 * se  # and predicted
+    se_c = np.std(corrected, ddof=1) / np.sqrt(len(corrected))
+    assert abs(np.mean(corrected)) < 3 * se_c  # and removed
+    np.testing.assert_allclose(np.asarray(raw) - np.asarray(corrected), pred, rtol=1e-9)
+
+
+def test_fit_cylinder_subtracts_and_records_the_bias_correction() -> None:
+    pts, truth, _ = seed.lrms_sweep(np.random.default_rng(21), clutter=0.1)
+    on = fit_cylinder(pts, noise=NM, rng=np.random.default_rng(5))
+    off = fit_cylinder(pts, noise=NM, rng=np.random.default_rng(5), options=DetectOptions(bias_correction=False))
+    np.testing.assert_array_equal(on.inliers, off.inliers)
+    shift = on.extra["bias_correction_diameter_m"]
+    assert "bias_correction_diameter_m" not in off.extra
+    assert on.diameter == pytest.approx(off.diameter - shift, abs=1e-12)
+    assert 0 < shift < 0.5 * on.std_diameter  # upward, and small against the uncertainty
+    assert on.extra["grazing_sigma_m"] > 0  # the default fit is the weighted one
+    assert abs(on.diameter - truth.diameter) < 4 * on.std_diameter
+    iso = fit_cylinder(pts, line_of_sight=False, noise=NM, rng=np.random.default_rng(5))
+    with pytest.raises(FitError, match="line-of-sight"):
+        second_order_bias(iso, rays_from_points(pts[iso.inliers], seed.P, NM))
+    with pytest.raises(FitError, match="one beam per inlier"):
+        second_order_bias(on, rays_from_points(pts, seed.P, NM))
