@@ -36,8 +36,9 @@ def peer(request: pytest.FixtureRequest) -> Iterator[tuple[ModbusSerialClient, M
     else:
         server = start_from_url(f"modbus-rtu+socket://127.0.0.1:0?unit={UNIT}")
         port = "socket://" + server.url.removeprefix("modbus-rtu://").split("?")[0]
-    # parity N: a pty cannot change parity after opening, and pymodbus reconfigures the port once
-    client = ModbusSerialClient(port, baudrate=115200, parity="N", timeout=1.0, retries=1)
+    # parity N: a pty cannot change parity after opening, and pymodbus reconfigures the port once. The timeout
+    # bounds answers that must come (no test waits one out): generous for a busy machine
+    client = ModbusSerialClient(port, baudrate=115200, parity="N", timeout=5.0, retries=1)
     try:
         assert client.connect(), f"pymodbus could not open {port}"
         yield client, server
@@ -73,7 +74,7 @@ def write_cw(client: ModbusSerialClient, value: int) -> None:
     assert wr.registers == [value]  # the echo
 
 
-def wait_sw(client: ModbusSerialClient, predicate: object, timeout: float = 3.0) -> int:
+def wait_sw(client: ModbusSerialClient, predicate: object, timeout: float = 10.0) -> int:
     deadline = time.monotonic() + timeout
     while True:
         sw = read_u16(client, SW)
