@@ -421,7 +421,9 @@ def monte_carlo_interval(
     refitted with orthogonal distances too, so the interval describes that estimator. Without
     rays (clouds from elsewhere), give the inlier ``points`` of an orthogonal fit: their radial
     projections on the cylinder get isotropic Gaussian noise of ``isotropic_sigma`` (default:
-    the fit's rms residual).
+    the fit's rms residual). The replicas are refitted without the grazing weights; when the fit
+    was bias-corrected (``fit.extra["bias_correction_diameter_m"]``) they are shifted by the
+    same correction.
     """
     if n < 10:
         raise LrmsError(f"Monte Carlo needs at least 10 replicas, got {n}")
@@ -462,6 +464,9 @@ def monte_carlo_interval(
         fun, jfun = _replica_problem(frame, pts, fit.line_of_sight, nm, p)
         theta = batched_levenberg_marquardt(fun, jfun, np.zeros((rep, 5)), max_iter=iterations)
         out[s : s + rep] = 2.0 * theta[:, 4] + 2.0 * cyl.radius
+    # a bias-corrected fit: the replicas are plain fits, so they take the fit's correction too (its
+    # spread from scan to scan, ~0.02 mm on the seed's sweeps, is small against theirs)
+    out -= fit.extra.get("bias_correction_diameter_m", 0.0)
     ok = np.isfinite(out)
     if np.count_nonzero(ok) < 10:
         raise FitError("Monte Carlo refits failed")

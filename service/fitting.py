@@ -63,6 +63,10 @@ def _vec(v: Any) -> list[float]:
     return [float(x) for x in np.asarray(v, dtype=np.float64).reshape(-1)]
 
 
+def _opt_float(v: float | None) -> float | None:
+    return None if v is None else float(v)
+
+
 def cylinder_result(
     points: ArrayLike,
     *,
@@ -89,7 +93,8 @@ def cylinder_result(
 
     Returns ``(result, fit, critical_point_interval)``. Result keys: ``model``, ``n_points``,
     ``n_inliers``, ``diameter_m``, ``radius_m``, ``axis_point_m``, ``axis_direction``, ``rmse_m``,
-    ``chi2_dof``, ``line_of_sight``, ``p_m``, ``sigma_l_m``, ``base_point_m``, ``covariance``
+    ``chi2_dof``, ``line_of_sight``, ``bias_correction_m`` (what the second-order bias correction
+    subtracted from the diameter; ``None`` when not applied), ``p_m``, ``sigma_l_m``, ``base_point_m``, ``covariance``
     {``parameters``, ``e1``, ``e2``, ``matrix``}, ``uncertainty`` {``k``, ``d_min_m``, ``d_max_m``,
     ``std_m``, ``critical_point`` {``r_ce_m``, ``percentile``}, ``gum`` {``std_m``, ``low_m``,
     ``high_m``, ``coverage``, ``coverage_factor``}, ``monte_carlo`` ({``n``, ``low_m``, ``high_m``,
@@ -150,6 +155,7 @@ def cylinder_result(
         "rmse_m": float(fit.rmse),
         "chi2_dof": float(fit.chi2_dof),
         "line_of_sight": bool(line_of_sight),
+        "bias_correction_m": _opt_float(fit.extra.get("bias_correction_diameter_m")),
         "p_m": float(p),
         "sigma_l_m": float(sigma_l),
         "base_point_m": None if fit.base_point is None else to_frame(fit.base_point),

@@ -40,6 +40,7 @@ def test_fit_cylinder_json_and_plot(
     assert u["d_min_m"] < out["diameter_m"] < u["d_max_m"]
     assert u["monte_carlo"]["low_m"] < out["diameter_m"] < u["monte_carlo"]["high_m"]
     assert out["line_of_sight"] is True and abs(out["axis_direction"][2]) > 0.9998
+    assert 0 < out["bias_correction_m"] < u["std_m"]  # the silhouette's upward bias, subtracted
     assert np.asarray(out["covariance"]["matrix"]).shape == (5, 5)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
 
@@ -51,6 +52,7 @@ def test_fit_without_line_of_sight_is_the_biased_orthogonal_fit(
     assert main(["fit", str(f), "--json", "--no-line-of-sight", "--k", "2"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["line_of_sight"] is False and out["uncertainty"]["k"] == 2
+    assert out["bias_correction_m"] is None  # defined for the line-of-sight fit only
     # on this rig's one-sided view the orthogonal fit comes out several mm small
     assert -0.012 < out["diameter_m"] - d_true < -0.004
 

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from bench import seed003_reproduction as seed
 from lrms.covariance import NoiseModel, covariances_of_points
 from lrms.crb import cylinder_crb
-from lrms.cylinder import Cylinder, _Frame, fit_cylinder, rays_from_points, refine_cylinder
+from lrms.cylinder import Cylinder, _Frame, bias_corrected, fit_cylinder, rays_from_points, refine_cylinder
 from lrms.errors import LrmsError
 from lrms.uncertainty import (
     _replica_problem,
@@ -183,3 +185,22 @@ def test_angular_noise_changes_the_bound_of_a_ray_cast_sweep_by_well_under_one_p
     plain = cylinder_crb(part, pr.origins, pr.dirs, NM.sigma_l).std_diameter
     full = cylinder_crb(part, pr.origins, pr.dirs, np.sqrt(NM.sigma_l**2 + ang**2)).std_diameter
     assert plain < full < 1.01 * plain
+
+
+def test_monte_carlo_replicas_of_a_bias_corrected_fit_are_centred_on_it() -> None:
+    """The replicas are plain fits from the fitted cylinder, so they carry the silhouette's upward
+    bias; for a corrected fit they take the same correction and centre on the fit again. A coarse
+    grid (1 deg, 438 beams) makes the bias large against the replicas' standard error."""
+    r = 0.06875
+    truth = seed.sweep_points(radius=r, step_alpha_deg=1.0, step_beta_deg=1.0)
+    pts, rays = seed.noisy_scan(truth, NM, np.random.default_rng(2))
+    fit = bias_corrected(refine_cylinder(pts, seed.seed_cylinder(r), rays=rays, gate=np.inf, max_rounds=1), rays)
+    shift = fit.extra["bias_correction_diameter_m"]
+    mc = monte_carlo_interval(fit, rays, noise=NM, n=400, rng=np.random.default_rng(3), p=seed.P)
+    raw = monte_carlo_interval(
+        dataclasses.replace(fit, extra={}), rays, noise=NM, n=400, rng=np.random.default_rng(3), p=seed.P
+    )
+    se = mc.std / np.sqrt(mc.diameters.size)
+    assert shift > 4 * se  # large enough that a missing or doubled shift would show
+    assert abs(float(np.mean(mc.diameters)) - fit.diameter) < 3 * se
+    assert mc.low == pytest.approx(raw.low - shift) and mc.high == pytest.approx(raw.high - shift)
