@@ -12,6 +12,7 @@ from pathlib import Path
 
 import httpx
 
+from service.cli.serve import LISTENING
 from tests.conftest import REPO
 
 LRMS = [sys.executable, "-m", "service.cli.main"]
@@ -70,13 +71,20 @@ def test_bad_config_and_bad_replay_file_are_one_line_errors(tmp_path: Path) -> N
     assert proc.returncode == 1 and "not an MCAP file" in proc.stderr
 
 
+def announced_url(proc: subprocess.Popen[str]) -> str:
+    """The URL of ``lrms serve``'s listening line on stdout (read until it comes or the process ends)."""
+    assert proc.stdout is not None
+    for line in proc.stdout:
+        if line.startswith(LISTENING):
+            return line[len(LISTENING) :].strip()
+    proc.wait(30)
+    raise AssertionError(f"lrms serve exited ({proc.returncode}) without listening: {proc.communicate()[1]}")
+
+
 def test_serve_answers_on_loopback(tmp_path: Path) -> None:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
     env = {**os.environ, "LRMS_API_TOKEN": "x"}
     proc = subprocess.Popen(
-        [*LRMS, "serve", "--port", str(port), "--data", str(tmp_path), "--log-level", "warning"],
+        [*LRMS, "serve", "--port", "0", "--data", str(tmp_path), "--log-level", "warning"],
         cwd=REPO,
         env=env,
         stdout=subprocess.PIPE,
@@ -84,11 +92,13 @@ def test_serve_answers_on_loopback(tmp_path: Path) -> None:
         text=True,
     )
     try:
+        url = announced_url(proc)  # --port 0: the port the service bound, from its stdout
+        assert url.startswith("http://127.0.0.1:") and int(url.rsplit(":", 1)[1]) > 0, url
         end = time.monotonic() + 60
         body = None
         while time.monotonic() < end and body is None:
             try:
-                body = httpx.get(f"http://127.0.0.1:{port}/api/v1/rig").json()
+                body = httpx.get(f"{url}/api/v1/rig", timeout=10).json()
             except httpx.HTTPError:
                 assert proc.poll() is None, proc.communicate()
                 time.sleep(0.2)
@@ -97,3 +107,18 @@ def test_serve_answers_on_loopback(tmp_path: Path) -> None:
     finally:
         proc.terminate()
         proc.wait(30)
+
+
+def test_serve_on_a_port_in_use_is_a_one_line_error(tmp_path: Path) -> None:
+    with socket.create_server(("127.0.0.1", 0)) as taken:  # listening: nobody else can bind it
+        port = taken.getsockname()[1]
+        proc = subprocess.run(
+            [*LRMS, "serve", "--port", str(port), "--data", str(tmp_path), "--log-level", "warning"],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+    assert proc.returncode == 1, (proc.stdout, proc.stderr)
+    assert proc.stderr.startswith("error: cannot listen on 127.0.0.1 port ") and str(port) in proc.stderr, proc.stderr
+    assert LISTENING not in proc.stdout

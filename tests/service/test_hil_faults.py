@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -29,6 +28,7 @@ from service.api import ServerThread, create_app
 from service.config import RigConfig, parse_toml
 from service.rig import build_service
 from tests.conftest import REPO
+from tests.service.test_cli import announced_url
 from tests.service.test_rig_sim import AUTH, FAST, _check_cylinder, _wait, _wait_sweeping, hil_config_text
 
 
@@ -178,14 +178,21 @@ def test_rig_process_killed_mid_sweep_reports_that_the_motor_stop_failed(
 LRMS_SERVE = [sys.executable, "-m", "service.cli.main", "serve"]
 
 
-def _serve(config: Path, port: int) -> subprocess.Popen[str]:
-    return subprocess.Popen(
-        [*LRMS_SERVE, "--config", str(config), "--port", str(port), "--log-level", "warning"],
+def _serve(config: Path) -> tuple[subprocess.Popen[str], str]:
+    """``lrms serve`` on a port of its own choosing (``--port 0``) and the URL it announces."""
+    proc = subprocess.Popen(
+        [*LRMS_SERVE, "--config", str(config), "--port", "0", "--log-level", "warning"],
         cwd=REPO,
-        stdout=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
     )
+    try:
+        return proc, announced_url(proc)
+    except BaseException:
+        proc.kill()
+        proc.wait(30)
+        raise
 
 
 def _client_of(proc: subprocess.Popen[str], url: str) -> httpx.Client:
@@ -204,14 +211,10 @@ def _client_of(proc: subprocess.Popen[str], url: str) -> httpx.Client:
 def test_restart_with_queued_work_runs_the_queued_measurement(rig_process: RigProcess, tmp_path: Path) -> None:
     """``lrms serve`` (its own process) on the rig process; stopped (SIGTERM) mid-sweep with a
     measurement queued, started again on the same SQLite file: the queued one runs to done."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
     config = tmp_path / "rig.toml"
     config.write_text(hil_config_text(rig_process.urls, tmp_path))
-    url = f"http://127.0.0.1:{port}"
     slow = {"target": "cylinder", "sweep": {"speed_deg_s": 5.0}}
-    proc = _serve(config, port)
+    proc, url = _serve(config)
     try:
         with _client_of(proc, url) as client:
             first = client.post("/api/v1/measurements", json=slow, headers=AUTH).json()["id"]
@@ -224,7 +227,7 @@ def test_restart_with_queued_work_runs_the_queued_measurement(rig_process: RigPr
     assert proc.returncode == 128 + signal.SIGTERM, proc.stderr.read() if proc.stderr else None  # closed, not killed
     state = rig_process.wait_motor_at_rest()  # the sweep was cancelled: quick stop
     assert state["velocity_actual"] == 0 and state["state"] != "FAULT", state  # the rig closed cleanly
-    proc = _serve(config, port)  # the same SQLite file
+    proc, url = _serve(config)  # the same SQLite file
     try:
         with _client_of(proc, url) as client:
             body = _wait(client, queued, {"done", "failed"})
