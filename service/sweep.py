@@ -532,6 +532,19 @@ def run_sweep(
         emit("sweep_end", {"t_ns": sweep_t[1]})
         phase[0] = "run-out"
 
+    def end_covered() -> bool:
+        """The scans reach past the sweep's end (a scan whose first beam is later has come, so every
+        scan of the sweep is in), and the motor samples reach past that scan's last beam (so every
+        beam of the sweep has samples on both sides). Pulls the motor samples that have arrived."""
+        pull_motor()
+        if not recorder.scans or not len(recorder.motor) or not recorder.clock.ready:
+            return False
+        last = recorder.scans[-1]
+        first_beam, last_beam = recorder.clock.to_host(
+            np.array([last.t0_us, last.t0_us + last.ranges_m.size * last.beam_dt_us], dtype=np.float64)
+        )
+        return bool(first_beam * 1e9 > sweep_t[1] and recorder.motor.t_ns[-1] * 1e-9 >= last_beam)
+
     mover = _Motion(motion)
     try:
         if not getattr(scanner, "streaming", False):
@@ -541,6 +554,7 @@ def run_sweep(
         last_scan = time.monotonic()
         span = abs(plan.stop - plan.start)
         tail_until: float | None = None
+        tail_limit = math.inf
         while True:
             if is_cancelled():
                 from service.jobs import Cancelled
@@ -575,10 +589,14 @@ def run_sweep(
             if not mover.is_alive():
                 if mover.error is not None:
                     raise mover.error
-                # keep reading until the scans cover the end of the sweep (two scan periods)
+                # keep reading until the scans and the motor samples cover the end of the sweep: at
+                # least two scan periods, then until end_covered() (on a starved host the last motor
+                # samples can come late), but no longer than the scanner may stay silent
+                now = time.monotonic()
                 if tail_until is None:
-                    tail_until = time.monotonic() + 2.0 / (recorder.scan_frequency_hz or 25.0) + 0.05
-                if time.monotonic() >= tail_until:
+                    tail_until = now + 2.0 / (recorder.scan_frequency_hz or 25.0) + 0.05
+                    tail_limit = now + scan_silence_s
+                if now >= tail_until and (now >= tail_limit or end_covered()):
                     break
         pull_motor()
     except BaseException as exc:
