@@ -37,7 +37,7 @@ from sim.scene import Scene, SensorModel
 FloatArray = NDArray[np.float64]
 _channels = itertools.count(1)
 #: The control channel's commands (one per line on the stdin of ``python -m sim.rig``).
-COMMANDS = ("drop_scanner", "kill_scanner", "motor_fault [KIND]", "drive_state", "describe")
+COMMANDS = ("drop_scanner", "kill_scanner", "motor_fault [KIND]", "drive_state", "scanner_stats", "describe")
 
 
 class PositionHistory:
@@ -176,6 +176,12 @@ class SimulatedRig:
             velocity = int(self.drive.read(cia402.VELOCITY_ACTUAL))
             return {"state": self.drive.state.name, "velocity_actual": velocity}
 
+    def scanner_stats(self) -> dict[str, int]:
+        """Scans the simulated scanner streamed (``sent``) and passed over because it fell behind
+        real time (``skipped``: gaps that a starved host, not the client, made)."""
+        server = self.scanner_server
+        return {"sent": server.scans_sent, "skipped": server.scans_skipped}
+
     def command(self, line: str) -> dict[str, Any]:
         """One line of the control channel of ``python -m sim.rig`` (see :func:`main`)."""
         words = line.split()
@@ -192,6 +198,8 @@ class SimulatedRig:
             return {"ok": True}
         if cmd == "drive_state":
             return {"ok": True, **self.drive_state()}
+        if cmd == "scanner_stats":
+            return {"ok": True, **self.scanner_stats()}
         if cmd == "describe":
             return {"ok": True, **self.describe()}
         raise ValueError(f"unknown command {cmd!r} (known: {', '.join(COMMANDS)})")
@@ -225,7 +233,8 @@ def main(argv: list[str] | None = None) -> int:
     then read from stdin is a control command (fault injection; :data:`COMMANDS`), answered by
     one JSON line on stdout: ``drop_scanner`` (cut the scanner's connections), ``kill_scanner``
     (the scanner goes dead), ``motor_fault KIND`` (``following_error``, ``over_current``,
-    ``heartbeat_loss``), ``drive_state``, ``describe``; an error is ``{"ok": false, "error"}``.
+    ``heartbeat_loss``), ``drive_state``, ``scanner_stats`` (scans ``sent`` and ``skipped``),
+    ``describe``; an error is ``{"ok": false, "error"}``.
     """
     import argparse
     import json

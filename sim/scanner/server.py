@@ -94,6 +94,10 @@ class ScannerServer:
         self._threads: list[threading.Thread] = []
         self.scans_sent = 0
         """Scan telegrams produced by the streaming thread (each counted once, whatever the clients)."""
+        self.scans_skipped = 0
+        """Scans the real-time streaming thread passed over because it fell behind (it goes on with
+        the newest complete scan); the clients see them as scan counter gaps. A starved host makes
+        these, not a client."""
         self.framing_errors = 0
         self.connections = 0
 
@@ -275,6 +279,9 @@ class ScannerServer:
                     index = latest + 1 if next_index is None else max(next_index, latest, dev.epoch_index)
                     while not dev.is_output_scan(index):
                         index += 1
+                    if next_index is not None and next_index >= dev.epoch_index:
+                        rate = max(1, dev.config.data.output_rate)  # output scans in [next_index, index)
+                        self.scans_skipped += (index - 1) // rate - (next_index - 1) // rate
                     timing = dev.timing(index)
                     # Cast once the last beam has been fired (the motor's history is complete
                     # then), send at the scan's time of transmission.

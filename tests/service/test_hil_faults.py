@@ -11,7 +11,6 @@ faults injected through its stdin control channel, the service driven over HTTP.
 
 from __future__ import annotations
 
-import json
 import signal
 import subprocess
 import sys
@@ -29,38 +28,7 @@ from service.config import RigConfig, parse_toml
 from service.rig import build_service
 from tests.conftest import REPO
 from tests.service.test_cli import announced_url
-from tests.service.test_rig_sim import AUTH, FAST, _check_cylinder, _wait, _wait_sweeping, hil_config_text
-
-
-class RigProcess:
-    """``python -m sim.rig`` with its control channel (one command line in, one JSON line out)."""
-
-    def __init__(self) -> None:
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "sim.rig"], cwd=REPO, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
-        )
-        assert self.proc.stdout is not None and self.proc.stdin is not None
-        self.stdin, self.stdout = self.proc.stdin, self.proc.stdout
-        self.urls: dict[str, str] = json.loads(self.stdout.readline())
-
-    def command(self, line: str) -> dict[str, Any]:
-        self.stdin.write(line + "\n")
-        self.stdin.flush()
-        reply: dict[str, Any] = json.loads(self.stdout.readline())
-        return reply
-
-    def wait_motor_at_rest(self) -> dict[str, Any]:
-        end = time.monotonic() + 10
-        state = self.command("drive_state")
-        while time.monotonic() < end and state["velocity_actual"] != 0:
-            time.sleep(0.05)
-            state = self.command("drive_state")
-        return state
-
-    def close(self) -> None:
-        if self.proc.poll() is None:
-            self.stdin.close()
-            self.proc.wait(timeout=20)
+from tests.service.test_rig_sim import AUTH, FAST, RigProcess, _check_cylinder, _wait, _wait_sweeping, hil_config_text
 
 
 @pytest.fixture

@@ -57,16 +57,42 @@ def _check_cylinder(result: dict[str, Any], gum: bool = True) -> None:
     assert abs(result["axis_direction"][2]) > 0.999
 
 
+class RigProcess:
+    """``python -m sim.rig`` with its control channel (one command line in, one JSON line out)."""
+
+    def __init__(self) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "sim.rig"], cwd=REPO, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+        )
+        assert self.proc.stdout is not None and self.proc.stdin is not None
+        self.stdin, self.stdout = self.proc.stdin, self.proc.stdout
+        self.urls: dict[str, str] = json.loads(self.stdout.readline())
+
+    def command(self, line: str) -> dict[str, Any]:
+        self.stdin.write(line + "\n")
+        self.stdin.flush()
+        reply: dict[str, Any] = json.loads(self.stdout.readline())
+        return reply
+
+    def wait_motor_at_rest(self) -> dict[str, Any]:
+        end = time.monotonic() + 10
+        state = self.command("drive_state")
+        while time.monotonic() < end and state["velocity_actual"] != 0:
+            time.sleep(0.05)
+            state = self.command("drive_state")
+        return state
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.stdin.close()
+            self.proc.wait(timeout=20)
+
+
 @pytest.fixture(scope="module")
-def sim_process() -> Iterator[dict[str, str]]:
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "sim.rig"], cwd=REPO, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
-    )
-    assert proc.stdout is not None and proc.stdin is not None
-    urls = json.loads(proc.stdout.readline())
-    yield urls
-    proc.stdin.close()
-    proc.wait(timeout=20)
+def sim_process() -> Iterator[RigProcess]:
+    rig = RigProcess()
+    yield rig
+    rig.close()
 
 
 def hil_config_text(urls: dict[str, str], data_dir: Path) -> str:
@@ -90,8 +116,8 @@ def hil_config_text(urls: dict[str, str], data_dir: Path) -> str:
     )
 
 
-def test_measures_the_cylinder_with_the_rig_in_another_process(sim_process: dict[str, str], tmp_path: Path) -> None:
-    cfg = parse_toml(hil_config_text(sim_process, tmp_path))
+def test_measures_the_cylinder_with_the_rig_in_another_process(sim_process: RigProcess, tmp_path: Path) -> None:
+    cfg = parse_toml(hil_config_text(sim_process.urls, tmp_path))
     svc, rig = build_service(cfg)
     try:
         with ServerThread(create_app(svc)) as srv, httpx.Client(base_url=srv.url, timeout=30) as client:
@@ -107,9 +133,13 @@ def test_measures_the_cylinder_with_the_rig_in_another_process(sim_process: dict
             assert body["state"] == "done", body["error"]
             res = body["result"]
             _check_cylinder(res)
-            # a starved simulator may skip a scan; whatever is lost is counted, the same by driver and sweep
+            # whatever is lost is counted, the same by driver and sweep; and every scan missing is one
+            # the simulator passed over because it fell behind real time (a starved host): the
+            # driver and the service lost none (the simulator's own count can be larger by scans
+            # passed over after the sweep's last read, which no later scan revealed to the service)
             assert res["sweep"]["scans_missing"] == res["scanner_stats"]["lost"]
-            assert res["sweep"]["scans_missing"] < 0.1 * res["sweep"]["scans_received"]
+            assert res["scanner_stats"]["queue_drops"] == 0
+            assert res["sweep"]["scans_missing"] <= sim_process.command("scanner_stats")["skipped"], res["sweep"]
             # every kept beam got its beta from motor samples on both sides of it (none extrapolated)
             assert res["mapping"]["beams_without_motor_sample"] == 0
             raw = client.get(f"/api/v1/measurements/{mid}/raw")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Iterator
 
 import numpy as np
@@ -378,6 +379,22 @@ def test_realtime_stream_paces_by_the_device_clock(connect: Connect) -> None:
     ahead = np.abs(scans[-1].angles_rad - np.pi / 2) < np.deg2rad(30)
     a = scans[-1].angles_rad[ahead] - np.pi / 2
     assert np.all(np.abs(r[ahead] - 3.0 / np.cos(a)) < 6 * SIGMA_L_SEED003)
+
+
+def test_a_realtime_stream_that_falls_behind_counts_the_scans_it_passes_over(connect: Connect) -> None:
+    device = SimulatedLMS100("wall")  # real time, 25 Hz
+    with ScannerServer(device, dialect="b") as srv:
+        link = connect(srv.address, "b")
+        assert link.request(SubscribeScanData(True)) == SubscribeScanDataReply(True)
+        before = link.scans(2)
+        with device.lock:  # the streaming thread stalls for 10 scan periods, as on a starved host
+            time.sleep(0.4)
+        after = link.scans(3)
+    counters = np.array([s.scan_counter for s in before + after])
+    gaps = int(np.sum(np.diff(counters) - 1))
+    # every gap a client sees is a scan the server counted as passed over (it may have counted
+    # more by now: scans passed over after the last one read)
+    assert 1 <= gaps <= srv.scans_skipped, (counters, srv.scans_skipped)
 
 
 def test_bad_server_and_device_arguments() -> None:
