@@ -23,7 +23,6 @@ import asyncio
 import gc
 import os
 import random
-import socket
 import subprocess
 import sys
 import tempfile
@@ -98,12 +97,6 @@ def bench_ingest(n_scans: int, repeats: int = 5) -> dict[str, Any]:
         "mcap_bytes_per_scan": runs[0][1] / n_scans,
         "points": float(runs[0][2]),
     }
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _server_ms(r: Any) -> float:
@@ -313,7 +306,8 @@ def _lag_text(buckets: dict[float, float]) -> str:
 def bench_rest(clients: int, duration: float, interval: float, args_processes: int = 4) -> dict[str, Any]:
     import httpx
 
-    port = _free_port()
+    from service.cli.serve import LISTENING
+
     token = "bench"
     with tempfile.TemporaryDirectory() as tmp:
         env = {**os.environ, "LRMS_API_TOKEN": token}
@@ -324,7 +318,7 @@ def bench_rest(clients: int, duration: float, interval: float, args_processes: i
                 "service.cli.main",
                 "serve",
                 "--port",
-                str(port),
+                "0",
                 "--data",
                 tmp,
                 "--log-level",
@@ -332,12 +326,22 @@ def bench_rest(clients: int, duration: float, interval: float, args_processes: i
             ],
             cwd=REPO,
             env=env,
-            stdout=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
         )
-        base = f"http://127.0.0.1:{port}"
         try:
+            # the service binds the port itself and says where (no free-port race with other processes)
+            assert proc.stdout is not None
+            base = ""
+            for line in proc.stdout:
+                if line.startswith(LISTENING):
+                    base = line[len(LISTENING) :].strip()
+                    break
+            if not base:
+                proc.kill()
+                _, err = proc.communicate(timeout=10)
+                raise RuntimeError(f"the service did not start: {err[-2000:]}")
             end = time.monotonic() + 60
             while True:
                 try:
