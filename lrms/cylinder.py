@@ -48,7 +48,7 @@ fitted direction ``w`` and ``a`` is the fitted axis point.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -1066,20 +1066,7 @@ def bias_corrected(fit: CylinderFit, rays: Rays) -> CylinderFit:
     new = frame.cylinder(-b)
     if not new.radius > 0:
         raise FitError("the bias correction gave a non-positive radius")
-    return CylinderFit(
-        cylinder=new,
-        inliers=fit.inliers,
-        rmse=fit.rmse,
-        covariance=fit.covariance,
-        frame=fit.frame,
-        line_of_sight=True,
-        chi2_dof=fit.chi2_dof,
-        sigma_scale=fit.sigma_scale,
-        plane=fit.plane,
-        base_point=fit.base_point,
-        n_points=fit.n_points,
-        extra={**fit.extra, "bias_correction_diameter_m": float(2.0 * b[4])},
-    )
+    return replace(fit, cylinder=new, extra={**fit.extra, "bias_correction_diameter_m": float(2.0 * b[4])})
 
 
 #: Clearance (m) above the table, along the axis, of a beam's predicted first hit on the fitted
