@@ -30,6 +30,7 @@ def run(args: argparse.Namespace) -> int:
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
     import contextlib
+    import copy
     import logging
     import signal
     import socket
@@ -68,7 +69,13 @@ def run(args: argparse.Namespace) -> int:
         port = int(sock.getsockname()[1])
         shown = f"[{args.host}]" if family == socket.AF_INET6 else args.host
         print(f"{LISTENING} http://{shown}:{port}", flush=True)
-        server = uvicorn.Server(uvicorn.Config(app, host=args.host, port=port, log_level=args.log_level))
+        # uvicorn's access log goes to stderr too: stdout carries only the lines above, so a caller
+        # that reads the listening line and then leaves the pipe alone cannot block the server
+        log_config = copy.deepcopy(uvicorn.config.LOGGING_CONFIG)
+        log_config["handlers"]["access"]["stream"] = "ext://sys.stderr"
+        server = uvicorn.Server(
+            uvicorn.Config(app, host=args.host, port=port, log_level=args.log_level, log_config=log_config)
+        )
         with contextlib.suppress(KeyboardInterrupt):  # as uvicorn.run: Ctrl-C is a clean stop
             server.run(sockets=[sock])
         if not server.started:

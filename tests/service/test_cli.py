@@ -84,13 +84,14 @@ def announced_url(proc: subprocess.Popen[str]) -> str:
 def test_serve_answers_on_loopback(tmp_path: Path) -> None:
     env = {**os.environ, "LRMS_API_TOKEN": "x"}
     proc = subprocess.Popen(
-        [*LRMS, "serve", "--port", "0", "--data", str(tmp_path), "--log-level", "warning"],
+        [*LRMS, "serve", "--port", "0", "--data", str(tmp_path), "--log-level", "info"],
         cwd=REPO,
         env=env,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
     )
+    out, err = "", ""
     try:
         url = announced_url(proc)  # --port 0: the port the service bound, from its stdout
         assert url.startswith("http://127.0.0.1:") and int(url.rsplit(":", 1)[1]) > 0, url
@@ -106,7 +107,10 @@ def test_serve_answers_on_loopback(tmp_path: Path) -> None:
         assert body["sim"]["alive"] is True and body["scanner"]["connected"] is True
     finally:
         proc.terminate()
-        proc.wait(30)
+        out, err = proc.communicate(timeout=30)
+    # the access log is on stderr: nothing after the listening line on stdout (a caller that stops
+    # reading it after that line cannot block the server)
+    assert "GET /api/v1/rig" in err and out == "", out
 
 
 def test_serve_on_a_port_in_use_is_a_one_line_error(tmp_path: Path) -> None:
