@@ -532,18 +532,27 @@ def run_sweep(
         emit("sweep_end", {"t_ns": sweep_t[1]})
         phase[0] = "run-out"
 
+    cover_until = [math.nan]  # host s: the last beam of the first scan seen to begin after the sweep's end
+
     def end_covered() -> bool:
         """The scans reach past the sweep's end (a scan whose first beam is later has come, so every
         scan of the sweep is in), and the motor samples reach past that scan's last beam (so every
-        beam of the sweep has samples on both sides). Pulls the motor samples that have arrived."""
+        beam of the sweep has samples on both sides). Pulls the motor samples that have arrived.
+        The scan is fixed once found: measured against the newest scan instead, the motor samples
+        chase a target that moves on with every scan (a scan arrives just after its last beam,
+        before the sample that follows it) and the run-out can last until its time limit."""
         pull_motor()
         if not recorder.scans or not len(recorder.motor) or not recorder.clock.ready:
             return False
-        last = recorder.scans[-1]
-        first_beam, last_beam = recorder.clock.to_host(
-            np.array([last.t0_us, last.t0_us + last.ranges_m.size * last.beam_dt_us], dtype=np.float64)
-        )
-        return bool(first_beam * 1e9 > sweep_t[1] and recorder.motor.t_ns[-1] * 1e-9 >= last_beam)
+        if math.isnan(cover_until[0]):
+            last = recorder.scans[-1]
+            first_beam, last_beam = recorder.clock.to_host(
+                np.array([last.t0_us, last.t0_us + last.ranges_m.size * last.beam_dt_us], dtype=np.float64)
+            )
+            if not first_beam * 1e9 > sweep_t[1]:
+                return False
+            cover_until[0] = float(last_beam)
+        return bool(recorder.motor.t_ns[-1] * 1e-9 >= cover_until[0])
 
     mover = _Motion(motion)
     try:
