@@ -1017,18 +1017,14 @@ def _grazing_refit(
     cov = a_inv @ (jac.T @ (var[:, None] * jac)) @ a_inv
     res = los_residuals(np.zeros(5), frame, sub.origins, sub.dirs, sub.ranges, sub.sigma_l, sub.sigma_perp)
     t, _ = cyl.ray_range(sub.origins, sub.dirs)
-    return CylinderFit(
+    return replace(
+        fit,
         cylinder=cyl,
-        inliers=idx,
         rmse=float(np.sqrt(np.mean(np.square(sub.ranges - t)))),
         covariance=np.asarray(cov, dtype=np.float64),
         frame=(frame.e1, frame.e2),
-        line_of_sight=True,
         chi2_dof=float(np.sum(res * res) / max(idx.size - 5, 1)),
         sigma_scale=1.0,
-        plane=fit.plane,
-        base_point=fit.base_point,
-        n_points=fit.n_points,
         extra={**fit.extra, "grazing_sigma_m": float(sigma_lat)},
     ), (sig, jac, a_inv)
 
@@ -1279,17 +1275,4 @@ def fit_cylinder(
         best, weights = _grazing_refit(pts, rr, best, lat, 3, opt.radius_range)
         if opt.bias_correction:  # at the weighted fit's solution: its weights and Jacobian serve again
             best = _bias_corrected(best, rr.subset(best.inliers), weights)
-    return CylinderFit(
-        cylinder=best.cylinder,
-        inliers=best.inliers,
-        rmse=best.rmse,
-        covariance=best.covariance,
-        frame=best.frame,
-        line_of_sight=best.line_of_sight,
-        chi2_dof=best.chi2_dof,
-        sigma_scale=best.sigma_scale,
-        plane=plane,
-        base_point=base,
-        n_points=int(pts.shape[0]),
-        extra=best.extra,
-    )
+    return replace(best, plane=plane, base_point=base, n_points=int(pts.shape[0]))
