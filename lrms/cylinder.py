@@ -823,6 +823,13 @@ def _multistart(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: DetectOption
     return refine_cylinder(pts, best_cyl, rays=rays, max_rounds=1)
 
 
+def _los_fit(pts: FloatArray, rays: Rays, start: Cylinder, opt: DetectOptions) -> CylinderFit:
+    """The line-of-sight fit from ``start`` on candidate points (their beams ``rays``): inlier
+    selection from ``start``, then :func:`_multistart` around its solution."""
+    fit = refine_cylinder(pts, start, rays=rays, max_rounds=4, final_full=False, work_size=5000)
+    return _multistart(pts, rays, fit, opt)
+
+
 def _refine_from(
     pts: FloatArray,
     initial: Cylinder,
@@ -846,10 +853,7 @@ def _refine_from(
         cand = np.flatnonzero((np.abs(rays.ranges - t) < 2.0 * opt.threshold) & (gap < 2.0 * opt.threshold))
         if cand.size < opt.min_inliers:
             raise FitError(f"no cylinder found: only {cand.size} points on the candidate's lines of sight")
-        fit = refine_cylinder(
-            pts[cand], rough.cylinder, rays=rays.subset(cand), max_rounds=4, final_full=False, work_size=5000
-        )
-        fit = _multistart(pts[cand], rays.subset(cand), fit, opt)
+        fit = _los_fit(pts[cand], rays.subset(cand), rough.cylinder, opt)
     else:
         cand = np.flatnonzero(np.abs(rough.cylinder.surface_distance(pts)) < 2.0 * opt.threshold)
         if cand.size < opt.min_inliers:
@@ -1189,9 +1193,7 @@ def _select_above_table(
     if cand.size < opt.min_inliers:
         return fit
     try:
-        sub = rays.subset(cand)
-        new = refine_cylinder(pts[cand], fit.cylinder, rays=sub, max_rounds=4, final_full=False, work_size=5000)
-        new = _multistart(pts[cand], sub, new, opt)
+        new = _los_fit(pts[cand], rays.subset(cand), fit.cylinder, opt)
     except FitError:
         return fit
     lo, hi = opt.radius_range
