@@ -63,10 +63,6 @@ def _vec(v: Any) -> list[float]:
     return [float(x) for x in np.asarray(v, dtype=np.float64).reshape(-1)]
 
 
-def _opt_float(v: float | None) -> float | None:
-    return None if v is None else float(v)
-
-
 def cylinder_result(
     points: ArrayLike,
     *,
@@ -155,7 +151,7 @@ def cylinder_result(
         "rmse_m": float(fit.rmse),
         "chi2_dof": float(fit.chi2_dof),
         "line_of_sight": bool(line_of_sight),
-        "bias_correction_m": _opt_float(fit.extra.get("bias_correction_diameter_m")),
+        "bias_correction_m": fit.extra.get("bias_correction_diameter_m"),  # a float (fit_cylinder's)
         "p_m": float(p),
         "sigma_l_m": float(sigma_l),
         "base_point_m": None if fit.base_point is None else to_frame(fit.base_point),
