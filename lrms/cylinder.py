@@ -954,11 +954,6 @@ def grazing_sigmas(cyl: Cylinder, rays: Rays, sigma_lat: float) -> FloatArray:
     return np.asarray(np.sqrt(rays.sigma_l**2 + (tan * sigma_lat) ** 2), dtype=np.float64)
 
 
-#: A weighted line-of-sight fit's per-beam sigmas, whitened Jacobian (at theta = 0 in the fit's
-#: frame) and inverse normal matrix, as :func:`grazing_weighted_fit` leaves them at its solution.
-_Weights = tuple[FloatArray, FloatArray, FloatArray]
-
-
 def grazing_weighted_fit(
     pts: FloatArray,
     rays: Rays,
@@ -979,20 +974,8 @@ def grazing_weighted_fit(
     (``V = sigma_l^2 / s_i^2``), ``chi2_dof`` the plain one with ``sigma_l``. Keeps ``fit`` if a
     refit fails or leaves ``radius_range`` (the detection's; default ``DetectOptions()``'s).
     """
-    return _grazing_refit(pts, rays, fit, sigma_lat, rounds, radius_range)[0]
-
-
-def _grazing_refit(
-    pts: FloatArray,
-    rays: Rays,
-    fit: CylinderFit,
-    sigma_lat: float,
-    rounds: int,
-    radius_range: tuple[float, float] | None,
-) -> tuple[CylinderFit, _Weights | None]:
-    """:func:`grazing_weighted_fit`, plus its weights at the solution (``None`` when it kept ``fit``)."""
     if sigma_lat <= 0 or not fit.line_of_sight:
-        return fit, None
+        return fit
     idx = fit.inliers
     sub_pts, sub = pts[idx], rays.subset(idx)
     cyl = fit.cylinder
@@ -1009,10 +992,10 @@ def _grazing_refit(
             nfev = 200 if use.size <= 10_000 or k < rounds - 1 else 4
             cyl = refine_cylinder(sub_pts[use], cyl, rays=weighted, gate=np.inf, max_rounds=1, max_nfev=nfev).cylinder
     except FitError:
-        return fit, None
+        return fit
     lo, hi = DetectOptions().radius_range if radius_range is None else radius_range
     if not lo <= cyl.radius <= hi:
-        return fit, None
+        return fit
     sig = grazing_sigmas(cyl, sub, sigma_lat)
     frame = _Frame.at(cyl)
     jac = los_jacobian(np.zeros(5), frame, sub.origins, sub.dirs, sig, sub.sigma_perp)
@@ -1030,7 +1013,7 @@ def _grazing_refit(
         chi2_dof=float(np.sum(res * res) / max(idx.size - 5, 1)),
         sigma_scale=1.0,
         extra={**fit.extra, "grazing_sigma_m": float(sigma_lat)},
-    ), (sig, jac, a_inv)
+    )
 
 
 def second_order_bias(fit: CylinderFit, rays: Rays) -> FloatArray:
@@ -1050,29 +1033,13 @@ def second_order_bias(fit: CylinderFit, rays: Rays) -> FloatArray:
     the leading term only. Miss rows (beams passing the model) take part through their whitened
     miss distance. Checked by Monte Carlo in tests/core/test_cylinder.py and docs/cylinder.md.
     """
-    return _second_order_bias(fit, rays, _fit_frame(fit), None)
-
-
-def _fit_frame(fit: CylinderFit) -> _Frame:
-    """The local frame of ``fit``'s covariance (theta = 0 at its solution)."""
-    cyl = fit.cylinder
-    return _Frame(cyl.point, cyl.direction, fit.frame[0], fit.frame[1], cyl.radius)
-
-
-def _second_order_bias(fit: CylinderFit, rays: Rays, frame: _Frame, weights: _Weights | None) -> FloatArray:
-    """:func:`second_order_bias` in ``frame`` (:func:`_fit_frame`), with the weights of
-    :func:`_grazing_refit` at ``fit``'s solution when the caller has them (else computed)."""
     if not fit.line_of_sight:
         raise FitError("the second-order bias is defined for a line-of-sight fit")
     if rays.ranges.shape[0] != fit.inliers.size:
         raise FitError("one beam per inlier is needed for the bias")
-    if weights is None:
-        lat = fit.extra.get("grazing_sigma_m", 0.0)
-        sig = grazing_sigmas(fit.cylinder, rays, lat) if lat > 0 else np.broadcast_to(rays.sigma_l, rays.ranges.shape)
-        jac = los_jacobian(np.zeros(5), frame, rays.origins, rays.dirs, sig, rays.sigma_perp)
-        a_inv = _covariance(jac)
-    else:
-        sig, jac, a_inv = weights
+    frame = _fit_frame(fit)
+    lat = fit.extra.get("grazing_sigma_m", 0.0)
+    sig = grazing_sigmas(fit.cylinder, rays, lat) if lat > 0 else np.broadcast_to(rays.sigma_l, rays.ranges.shape)
     lam, vec = np.linalg.eigh(0.5 * (fit.covariance + fit.covariance.T))
     steps = (np.sqrt(3.0 * np.maximum(lam, 0.0)) * vec).T  # rows: the Gauss-Hermite nodes' offsets
 
@@ -1083,22 +1050,23 @@ def _second_order_bias(fit: CylinderFit, rays: Rays, frame: _Frame, weights: _We
     second = np.zeros_like(centre)
     for step in steps:  # 5 directions, each a vectorized pass over the beams
         second += (res(step) + res(-step) - 2.0 * centre) / 3.0
+    jac = los_jacobian(np.zeros(5), frame, rays.origins, rays.dirs, sig, rays.sigma_perp)
     # whitened residuals r_i = (l_i - t_i) / s_i: J_r = -J_t / s_i and second = -"tr(H_i C)" / s_i
-    return np.asarray(-0.5 * (a_inv @ (jac.T @ second)), dtype=np.float64)
+    return np.asarray(-0.5 * (_covariance(jac) @ (jac.T @ second)), dtype=np.float64)
+
+
+def _fit_frame(fit: CylinderFit) -> _Frame:
+    """The local frame of ``fit``'s covariance (theta = 0 at its solution)."""
+    cyl = fit.cylinder
+    return _Frame(cyl.point, cyl.direction, fit.frame[0], fit.frame[1], cyl.radius)
 
 
 def bias_corrected(fit: CylinderFit, rays: Rays) -> CylinderFit:
     """``fit`` with its :func:`second_order_bias` subtracted (``rays``: its inlier beams). The
     covariance is kept (the correction is of second order); ``extra["bias_correction_diameter_m"]``
     records what was subtracted from the diameter."""
-    return _bias_corrected(fit, rays, None)
-
-
-def _bias_corrected(fit: CylinderFit, rays: Rays, weights: _Weights | None) -> CylinderFit:
-    """:func:`bias_corrected` with ``weights`` as in :func:`_second_order_bias`."""
-    frame = _fit_frame(fit)
-    b = _second_order_bias(fit, rays, frame, weights)
-    new = frame.cylinder(-b)
+    b = second_order_bias(fit, rays)
+    new = _fit_frame(fit).cylinder(-b)
     if not new.radius > 0:
         raise FitError("the bias correction gave a non-positive radius")
     return replace(fit, cylinder=new, extra={**fit.extra, "bias_correction_diameter_m": float(2.0 * b[4])})
@@ -1274,7 +1242,7 @@ def fit_cylinder(
                 base = best.cylinder.point + (height - float((best.cylinder.point - origin) @ up)) * up
     if rr is not None:
         lat = GRAZING_SIGMA if opt.grazing_sigma < 0 else opt.grazing_sigma
-        best, weights = _grazing_refit(pts, rr, best, lat, 3, opt.radius_range)
-        if opt.bias_correction:  # at the weighted fit's solution: its weights and Jacobian serve again
-            best = _bias_corrected(best, rr.subset(best.inliers), weights)
+        best = grazing_weighted_fit(pts, rr, best, lat, radius_range=opt.radius_range)
+        if opt.bias_correction:
+            best = bias_corrected(best, rr.subset(best.inliers))
     return replace(best, plane=plane, base_point=base, n_points=int(pts.shape[0]))
