@@ -1,0 +1,123 @@
+"""What the REST API's routes share: :class:`Service` (config, store, job runner, scheduler,
+metrics and the rig's description of one rig), the response cache of the read endpoints, and the
+JSON-bytes response class."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from fastapi import Response
+
+from service.config import RigConfig
+from service.jobs import JobRunner, MeasureFn, Metrics, ProgressHub
+from service.models import MeasurementRequest
+from service.scheduler import Scheduler
+from service.store import Store
+
+RigInfo = Callable[[], dict[str, Any]]
+
+
+class JsonBytes(Response):
+    """A response whose body is JSON already serialised (cached or built by pydantic)."""
+
+    media_type = "application/json"
+
+
+@dataclass
+class RigLive:
+    """The last reading of the rig's devices (``rig_info()``) and when it was taken (monotonic s)."""
+
+    read_at: float = -1e9
+    info: dict[str, Any] = field(default_factory=dict)
+    lock: asyncio.Lock = field(default_factory=asyncio.Lock)
+
+
+class ResponseCache:
+    """Serialised JSON bodies of the read endpoints, keyed by request and valid for one
+    :attr:`Store.version`: a polling HMI gets the bytes built for the previous poll until a
+    measurement or schedule changes, instead of an SQLite query, JSON decoding of stored results,
+    pydantic validation and serialisation per request (the event loop's main cost under load).
+
+    The version is read *before* the body is built, so a write racing with the build leaves the
+    entry stale-marked and the next request builds it again."""
+
+    def __init__(self, store: Store, max_entries: int = 512) -> None:
+        self.store = store
+        self.max_entries = max_entries
+        self._entries: dict[str, tuple[tuple[int, int], bytes]] = {}
+        self.hits = 0
+        self.misses = 0
+
+    def get(self, key: str, build: Callable[[], bytes]) -> bytes:
+        version = self.store.version
+        hit = self._entries.get(key)
+        if hit is not None and hit[0] == version:
+            self.hits += 1
+            return hit[1]
+        self.misses += 1
+        body = build()
+        if len(self._entries) >= self.max_entries:
+            self._entries.clear()
+        self._entries[key] = (version, body)
+        return body
+
+
+class Service:
+    """Everything behind the REST API for one rig."""
+
+    def __init__(
+        self,
+        config: RigConfig,
+        measure: MeasureFn,
+        rig_info: RigInfo | None = None,
+        store: Store | None = None,
+        validate: Callable[[MeasurementRequest], None] | None = None,
+    ) -> None:
+        self.config = config
+        self.store = store or Store(config.storage.db_path)
+        self.metrics = Metrics()
+        self.hub = ProgressHub()
+        self.runner = JobRunner(
+            self.store, measure, config.storage.raw_dir, config.storage.cloud_dir, self.hub, self.metrics
+        )
+        self.scheduler = Scheduler(self.store, self.runner)
+        self.rig_info = rig_info or (lambda: {})
+        self.validate = validate
+        self.cache = ResponseCache(self.store)
+        self.rig_live = RigLive()
+        self._started = False
+
+    def start(self) -> None:
+        if not self._started:
+            self._started = True
+            _settle_heap()
+            self.runner.start()
+            self.scheduler.start()
+
+    def stop(self) -> None:
+        if self._started:
+            self._started = False
+            self.scheduler.stop()
+            self.runner.stop()
+
+    def token(self) -> str | None:
+        return self.config.api_token()
+
+
+def _settle_heap() -> None:
+    """Import what a measurement needs, then move everything alive into the GC's permanent
+    generation (``gc.freeze``): a full collection then walks only what requests and sweeps
+    allocate, instead of the hundreds of thousands of objects of numpy, scipy, pydantic and
+    FastAPI, which otherwise stalled every thread for up to a second in the middle of a sweep."""
+    import gc
+    import importlib
+
+    for name in ("service.fitting", "lrms.cylinder", "lrms.uncertainty", "scipy.optimize", "scipy.stats"):
+        with contextlib.suppress(ImportError):  # a missing module is reported when a measurement needs it
+            importlib.import_module(name)
+    gc.collect()
+    gc.freeze()

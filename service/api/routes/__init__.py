@@ -1,0 +1,1 @@
+"""One APIRouter module per resource: ops (health, metrics), rig, measurements, schedules."""

@@ -1,0 +1,53 @@
+"""``/api/v1/rig``: the rig's configuration and its devices' state."""
+
+from __future__ import annotations
+
+import json
+import time
+from typing import Any
+
+from fastapi import APIRouter, Response
+from fastapi.concurrency import run_in_threadpool
+from fastapi.encoders import jsonable_encoder
+
+from service.api.core import JsonBytes, Service
+from service.api.deps import ServiceDep
+
+router = APIRouter(tags=["rig"])
+
+_LIVE_PERIOD_S = 0.25
+
+
+def _static(service: Service) -> dict[str, Any]:
+    """The configuration part (it does not change while the app runs)."""
+    cfg = service.config
+    return {
+        "name": cfg.name,
+        "simulated": cfg.is_sim,
+        "scanner_url": cfg.scanner.url,
+        "motor_url": cfg.motor.url,
+        "kinematics": cfg.kinematics,
+        "noise": cfg.noise.model_dump(mode="json"),
+        "sweep_defaults": cfg.sweep.model_dump(mode="json"),
+        "fit_defaults": cfg.fit.model_dump(mode="json"),
+        "sim": cfg.sim.model_dump(mode="json") if cfg.sim is not None else None,
+    }
+
+
+@router.get("/rig", response_class=JsonBytes)
+async def rig(service: ServiceDep) -> Response:
+    """Configuration and device state. The device part is read at most every 0.25 s (on a
+    worker thread, as a driver may block); requests in between get that reading."""
+    live = service.rig_live
+    if time.monotonic() - live.read_at >= _LIVE_PERIOD_S:
+        async with live.lock:  # one device query for all the requests that found it stale
+            if time.monotonic() - live.read_at >= _LIVE_PERIOD_S:
+                live.info = await run_in_threadpool(service.rig_info)
+                live.read_at = time.monotonic()
+    info = {
+        **_static(service),
+        "write_enabled": service.token() is not None,
+        "busy": service.runner.running_id is not None,
+        **live.info,
+    }
+    return JsonBytes(json.dumps(jsonable_encoder(info)).encode())
