@@ -78,6 +78,25 @@ def test_cli_help_lists_commands() -> None:
     assert "scanner" in sim_out and "motor" in sim_out
 
 
+def test_cli_start_imports_no_numerics_or_simulator() -> None:
+    """``lrms`` parses its arguments without importing numpy, the simulator or the web stack: the
+    command modules import those inside ``run`` and the sim:// URLs are registered by dotted path
+    (each heavy import costs a command-line start tenths of a second)."""
+    probe = (
+        "import sys\n"
+        "from service.cli import main\n"
+        "try:\n"
+        "    main.main(['--help'])\n"
+        "except SystemExit:\n"
+        "    pass\n"
+        "heavy = ('numpy', 'scipy', 'can', 'sim', 'fastapi', 'matplotlib', 'service.simdevices')\n"
+        "print('HEAVY:', ' '.join(m for m in heavy if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=REPO, check=True)
+    assert "Laser radar measurement system" in out.stdout
+    assert out.stdout.rstrip().endswith("HEAVY:"), out.stdout[-300:]
+
+
 def test_drivers_and_lrms_never_import_sim_or_service() -> None:
     import re
 

@@ -60,11 +60,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    import service.simdevices  # noqa: F401  (registers the sim:// device URLs)
     from drivers.errors import DriverError
+    from drivers.url import register
     from lrms.errors import LrmsError
     from service.errors import ServiceError
 
+    # the sim:// device URLs, by dotted path: the simulator (numpy, python-can, the scene) is
+    # imported only by a command that opens a simulated device, not by every start of ``lrms``
+    register("scanner", "sim", "service.simdevices:open_sim_scanner")
+    register("motor", "sim", "service.simdevices:open_sim_motor")
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
