@@ -27,7 +27,7 @@ from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
 from drivers.errors import DriverError
 from lrms.errors import LrmsError
-from service import mcaplog
+from service import mcaprecovery
 from service.errors import ServiceError
 from service.models import MeasurementRequest
 from service.store import FINAL_STATES, INTERRUPTED, Measurement, Store, StoreError
@@ -184,7 +184,7 @@ class JobRunner:
 
     def _recover(self, mid: str) -> str:
         """Fail a measurement a dead process left running, keeping what its raw log holds: a log
-        cut short is rebuilt into a complete MCAP file (:func:`service.mcaplog.recover_log`), served
+        cut short is rebuilt into a complete MCAP file (:func:`service.mcaprecovery.recover_log`), served
         with ``raw_truncated``; the failure reason says where it ends and how much it holds."""
         raw = self.raw_dir / f"{mid}.mcap"
         cloud = self.cloud_dir / f"{mid}.ply"
@@ -193,7 +193,7 @@ class JobRunner:
         truncated = False
         if raw.exists():
             try:
-                rec = mcaplog.recover_log(raw)
+                rec = mcaprecovery.recover_log(raw)
             except (OSError, ServiceError) as exc:
                 log.error("measurement %s: its raw log %s could not be recovered: %s", mid, raw, exc)
                 reason += f"; its raw log could not be recovered: {exc}"

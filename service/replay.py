@@ -15,7 +15,7 @@ from typing import Any
 from drivers.lms100.errors import CoLaError
 from drivers.lms100.messages import ScanDataEvent, ScanDataReply
 from drivers.lms100.protocol import CoLaConnection
-from service import mcaplog
+from service import mcaplog, mcaprecovery
 from service.config import parse_config
 from service.errors import ServiceError
 from service.models import MeasurementRequest, ResolvedSweep
@@ -81,7 +81,7 @@ def replay(path: str | Path) -> dict[str, Any]:
     sweep = ResolvedSweep.model_validate(meta["sweep"])
     _, result = finish_measurement(recorder, cfg, request, sweep, t_start, t_end)
     result = mcaplog.json_safe(result)
-    recovered = mcaplog.recovery_info(path)
+    recovered = mcaprecovery.recovery_info(path)
     out: dict[str, Any] = {
         "result": result,
         "stored": stored,

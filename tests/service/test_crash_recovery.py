@@ -27,7 +27,7 @@ import httpx
 from mcap.reader import make_reader
 
 from drivers.lms100 import PASSWORD_HASHES, AccessLevel
-from service import mcaplog
+from service import mcaplog, mcaprecovery
 from service.cli.serve import LISTENING
 from service.replay import replay
 from tests.conftest import REPO
@@ -103,7 +103,7 @@ def test_killed_service_leaves_a_recoverable_raw_log_served_as_truncated(tmp_pat
     assert not _alive(sim_pid), f"the simulated rig (pid {sim_pid}) outlived the killed service"
     # what the kill left: a raw log without summary, which the indexed reader refuses
     raw = tmp_path / "data" / "raw" / f"{mid}.mcap"
-    assert raw.stat().st_size > 0 and not mcaplog.has_summary(raw)
+    assert raw.stat().st_size > 0 and not mcaprecovery.has_summary(raw)
     on_disk, status = mcaplog.read_log(raw)
     assert status.truncated and on_disk
 
@@ -143,7 +143,7 @@ def test_killed_service_leaves_a_recoverable_raw_log_served_as_truncated(tmp_pat
     assert_json_is_javascript_safe(msgs)
     events = [m.decode() for m in msgs if m.topic == mcaplog.TOPIC_EVENT]
     assert [e["kind"] for e in events if e["kind"].startswith("sweep_")] == ["sweep_start"]
-    info = mcaplog.recovery_info(got)
+    info = mcaprecovery.recovery_info(got)
     assert info is not None and info["messages"] == str(n)
     # secrets: not in the file (summary and uncompressed records) nor in any message, nor on stderr
     plain = data + b"".join(m.data for m in msgs)

@@ -21,7 +21,7 @@ import httpx
 import numpy as np
 import pytest
 
-from service import mcaplog
+from service import mcaplog, mcaprecovery
 from service.api import ServerThread, create_app
 from service.config import parse_config, parse_toml
 from service.pointio import read_points
@@ -182,8 +182,8 @@ def test_measures_the_cylinder_with_the_rig_in_another_process(sim_process: RigP
         assert partial["truncated"] is True and partial["reproduced"] is None
         assert 0 < partial["result"]["sweep"]["scans_received"] < res["sweep"]["scans_received"]
         # rebuilt into a complete file (as the service does on restart), it replays the same
-        recovery = mcaplog.recover_log(cut)
-        assert recovery.truncated and mcaplog.has_summary(cut)
+        recovery = mcaprecovery.recover_log(cut)
+        assert recovery.truncated and mcaprecovery.has_summary(cut)
         again = replay(cut)
         assert again["truncated"] is True and again["recovered"]["messages"] == str(recovery.messages)
         assert again["result"] == partial["result"]
