@@ -2,10 +2,11 @@
 
 A measurement goes ``queued -> running -> done | failed``, or ``queued | running -> cancelled``.
 It keeps its request, progress (0..1 and a message), the result JSON, the failure reason and the
-paths of its raw MCAP log and its cloud (PLY). Everything survives a restart: on opening, a
-measurement left ``running`` by a process that died is marked ``failed`` (the rig's state after
-the crash is unknown, so the sweep is not silently resumed), while ``queued`` ones stay queued
-and the job runner picks them up again in order.
+paths of its raw MCAP log and its cloud (PLY). Everything survives a restart: at start-up the
+job runner marks a measurement left ``running`` by a process that died ``failed``
+(:meth:`Store.fail_interrupted`, with what is left of its raw log and ``raw_truncated``; the rig's
+state after the crash is unknown, so the sweep is not silently resumed), while ``queued`` ones
+stay queued and the job runner picks them up again in order.
 
 The connection is shared by the threads of one process behind a lock; the file uses SQLite's
 write-ahead log so readers never wait for a writer. :attr:`Store.version` tells readers when
