@@ -5,7 +5,8 @@ function with a :class:`JobContext` (progress reporting, cancellation, where to 
 and the cloud), and records the outcome: ``done`` with the result, ``failed`` with the reason
 (the error's message; an unexpected exception is reported with its type), or ``cancelled``.
 The queue lives in SQLite, so queued work survives a restart and resumes in order;
-:meth:`JobRunner.start` first marks measurements a dead process left running as failed.
+:meth:`JobRunner.start` first marks measurements a dead process left running as failed, after
+rebuilding the raw log such a process left cut short into a complete one (served as truncated).
 
 Progress goes to the store (throttled) and to a :class:`ProgressHub`, an in-memory board of the
 latest event per measurement with a version number, which the server-sent-events endpoint polls
@@ -26,9 +27,10 @@ from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
 from drivers.errors import DriverError
 from lrms.errors import LrmsError
+from service import mcaprecovery
 from service.errors import ServiceError
 from service.models import MeasurementRequest
-from service.store import FINAL_STATES, Measurement, Store, StoreError
+from service.store import FINAL_STATES, INTERRUPTED, Measurement, Store, StoreError
 
 log = logging.getLogger(__name__)
 
@@ -172,13 +174,41 @@ class JobRunner:
             return
         self.raw_dir.mkdir(parents=True, exist_ok=True)
         self.cloud_dir.mkdir(parents=True, exist_ok=True)
-        self.recovered = self.store.recover_interrupted()
+        self.recovered = [self._recover(mid) for mid in self.store.interrupted()]
         for mid in self.recovered:
             self.metrics.finished.labels("failed").inc()
             self.hub.publish(self.store.get(mid))
         self._thread = threading.Thread(target=self._loop, name="lrms-jobs", daemon=True)
         self._thread.start()
         self._wake.set()
+
+    def _recover(self, mid: str) -> str:
+        """Fail a measurement a dead process left running, keeping what its raw log holds: a log
+        cut short is rebuilt into a complete MCAP file (:func:`service.mcaprecovery.recover_log`), served
+        with ``raw_truncated``; the failure reason says where it ends and how much it holds."""
+        raw = self.raw_dir / f"{mid}.mcap"
+        cloud = self.cloud_dir / f"{mid}.ply"
+        reason = INTERRUPTED
+        raw_path: str | None = None
+        truncated = False
+        if raw.exists():
+            try:
+                rec = mcaprecovery.recover_log(raw)
+            except (OSError, ServiceError) as exc:
+                log.error("measurement %s: its raw log %s could not be recovered: %s", mid, raw, exc)
+                reason += f"; its raw log could not be recovered: {exc}"
+            else:
+                if rec.messages:
+                    raw_path, truncated = str(raw), rec.truncated
+                if rec.truncated:
+                    reason += f"; {rec.describe()}"
+                log.warning("measurement %s failed: %s", mid, reason)
+        else:
+            reason += "; it had no raw log"
+        self.store.fail_interrupted(
+            mid, reason, raw_path=raw_path, cloud_path=str(cloud) if cloud.exists() else None, raw_truncated=truncated
+        )
+        return mid
 
     def stop(self, timeout: float = 30.0) -> None:
         """Stop the worker; a running measurement is cancelled (its motor stopped by the rig)."""

@@ -16,11 +16,15 @@ topic                      schema / encoding               content
 =========================  ==============================  ===========================================
 
 Every message's log time is the host time (ns since the epoch) at which the data was read; that
-is what :mod:`service.cli.replay` feeds back through the same pipeline.
+is what :mod:`service.cli.replay` feeds back through the same pipeline. A time inside a JSON
+message is Foxglove's ``{"sec", "nsec"}`` object (:func:`foxglove_time`), never an integer of
+nanoseconds: those exceed 2^53, which a JavaScript reader (Foxglove) rounds.
 
 The writer closes a chunk about once a second (``Writer.flush``) and flushes the file, so a
 process killed mid-sweep leaves every completed chunk readable: :func:`iter_log` reads a file
-with or without its summary, and stops cleanly where a truncated file ends.
+with or without its summary, and stops cleanly where a truncated file ends;
+:func:`service.mcaprecovery.recover_log` rewrites such a file into a complete, indexed one (the
+service does so on restart).
 """
 
 from __future__ import annotations
@@ -71,6 +75,34 @@ _JSON_SCHEMA: dict[str, str] = {
     TOPIC_RESULT: "lrms.Result",
 }
 _PROTO_BY_NAME = {cls.DESCRIPTOR.full_name: cls for cls in _PROTO.values()}
+
+#: Foxglove's time in JSON: whole seconds and nanoseconds, both integers a JavaScript number holds exactly.
+TIME_SCHEMA: dict[str, Any] = {
+    "type": "object",
+    "properties": {
+        "sec": {"type": "integer", "minimum": 0},
+        "nsec": {"type": "integer", "minimum": 0, "maximum": 999_999_999},
+    },
+    "required": ["sec", "nsec"],
+}
+_JSON_PROPERTIES: dict[str, dict[str, Any]] = {
+    TOPIC_EVENT: {"kind": {"type": "string"}, "time": TIME_SCHEMA},
+}
+
+
+def foxglove_time(t_ns: int) -> dict[str, int]:
+    """``{"sec", "nsec"}`` of a host time in integer ns since the epoch (Foxglove's JSON time)."""
+    sec, nsec = divmod(int(t_ns), 1_000_000_000)
+    return {"sec": sec, "nsec": nsec}
+
+
+def time_ns_of(value: Any) -> int:
+    """Integer ns of a logged time: a ``{"sec", "nsec"}`` object, or the plain integer older logs carry."""
+    if isinstance(value, dict):
+        return int(value["sec"]) * 1_000_000_000 + int(value["nsec"])
+    if isinstance(value, int | str) and not isinstance(value, bool):
+        return int(value)
+    raise McapLogError(f"not a logged time: {value!r}")
 
 
 def json_safe(obj: Any) -> Any:
@@ -338,7 +370,10 @@ class McapLog:
             )
             cid = self._writer.register_channel(topic=topic, message_encoding="protobuf", schema_id=sid)
         elif topic in _JSON_SCHEMA:
-            schema = json.dumps({"type": "object", "title": _JSON_SCHEMA[topic]}).encode()
+            doc: dict[str, Any] = {"type": "object", "title": _JSON_SCHEMA[topic]}
+            if topic in _JSON_PROPERTIES:
+                doc["properties"] = _JSON_PROPERTIES[topic]
+            schema = json.dumps(doc).encode()
             sid = self._writer.register_schema(name=_JSON_SCHEMA[topic], encoding="jsonschema", data=schema)
             cid = self._writer.register_channel(topic=topic, message_encoding="json", schema_id=sid)
         else:

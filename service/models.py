@@ -138,6 +138,11 @@ class MeasurementOut(BaseModel):
     result: dict[str, Any] | None
     error: str | None
     has_raw: bool
+    raw_truncated: bool = Field(
+        default=False,
+        description="the raw log was rebuilt from a file cut short when the service process died: "
+        "complete and indexed, but it ends where the process stopped (the error says where)",
+    )
     has_cloud: bool
     schedule_id: str | None
 

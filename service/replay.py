@@ -3,7 +3,8 @@
 The live pipeline and this one share :class:`service.sweep.SweepRecorder` and
 :func:`service.rig.finish_measurement`, and the log keeps every input with its integer-ns host
 time, so a replay of a complete log reproduces the stored result. A log cut short by a crash
-replays up to where it ends (its sweep may be incomplete; the fit then says so).
+replays up to where it ends (its sweep may be incomplete; the fit then says so), and so does one
+the service rebuilt from such a file on restart (``recovered`` gives its recovery record).
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from typing import Any
 from drivers.lms100.errors import CoLaError
 from drivers.lms100.messages import ScanDataEvent, ScanDataReply
 from drivers.lms100.protocol import CoLaConnection
-from service import mcaplog
+from service import mcaplog, mcaprecovery
 from service.config import parse_config
 from service.errors import ServiceError
 from service.models import MeasurementRequest, ResolvedSweep
@@ -26,7 +27,8 @@ class ReplayError(ServiceError):
 
 
 def replay(path: str | Path) -> dict[str, Any]:
-    """Replay ``path``; returns ``{"result", "stored", "status", "reproduced", "max_abs_diff"}``."""
+    """Replay ``path``; returns ``{"result", "stored", "truncated", "recovered", "bad_telegrams",
+    "reproduced", "max_abs_diff"}`` (``recovered``: the recovery record of a log rebuilt on restart)."""
     from service.rig import finish_measurement
 
     status = mcaplog.LogReadStatus()
@@ -61,10 +63,13 @@ def replay(path: str | Path) -> dict[str, Any]:
                 recorder.add_motor(t_ns, j.position, j.velocity)
         elif msg.topic == mcaplog.TOPIC_EVENT:
             ev = msg.decode()
-            if ev.get("kind") == "sweep_start":
-                t_start = int(ev["t_ns"])
-            elif ev.get("kind") == "sweep_end":
-                t_end = int(ev["t_ns"])
+            if ev.get("kind") in ("sweep_start", "sweep_end"):
+                # {"sec", "nsec"}; logs written before that carry the integer "t_ns"
+                t = mcaplog.time_ns_of(ev["time"] if "time" in ev else ev["t_ns"])
+                if ev["kind"] == "sweep_start":
+                    t_start = t
+                else:
+                    t_end = t
         elif msg.topic == mcaplog.TOPIC_RESULT:
             stored = msg.decode()
     if meta is None or recorder is None:
@@ -76,10 +81,12 @@ def replay(path: str | Path) -> dict[str, Any]:
     sweep = ResolvedSweep.model_validate(meta["sweep"])
     _, result = finish_measurement(recorder, cfg, request, sweep, t_start, t_end)
     result = mcaplog.json_safe(result)
+    recovered = mcaprecovery.recovery_info(path)
     out: dict[str, Any] = {
         "result": result,
         "stored": stored,
-        "truncated": status.truncated,
+        "truncated": status.truncated or recovered is not None,
+        "recovered": recovered,
         "bad_telegrams": bad,
         "reproduced": None,
         "max_abs_diff": None,

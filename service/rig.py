@@ -22,6 +22,7 @@ import threading
 import time
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit, urlunsplit
 
 import numpy as np
 
@@ -143,9 +144,31 @@ def plan_from(sweep: ResolvedSweep) -> SweepPlan:
     )
 
 
+#: Configuration keys never written to a raw log (secrets): all of ``[auth]`` and the scanner's
+#: login password hash. ``public_config`` leaves them out; the logged configuration still parses.
+SECRET_KEYS: tuple[str, ...] = ("auth", "scanner.login_password_hash")
+
+
+def redact_url(url: str | None) -> str | None:
+    """``url`` without a password in its user part (``scheme://user:***@host``)."""
+    if url is None:
+        return None
+    parts = urlsplit(url)
+    if parts.password is None:
+        return url
+    host = parts.netloc.rsplit("@", 1)[1]
+    return urlunsplit(parts._replace(netloc=f"{parts.username or ''}:***@{host}"))
+
+
 def public_config(config: RigConfig) -> dict[str, Any]:
-    """The configuration as logged with a measurement (no token, no storage paths)."""
-    data = config.model_dump(mode="json", exclude={"auth", "storage"})
+    """The configuration as logged with a measurement: no secrets (:data:`SECRET_KEYS`; device URLs
+    without a password) and no storage paths."""
+    data: dict[str, Any] = config.model_dump(mode="json", exclude={"auth", "storage"})
+    scanner = data.get("scanner", {})
+    scanner.pop("login_password_hash", None)
+    for device in ("scanner", "motor"):
+        if isinstance(data.get(device), dict) and data[device].get("url") is not None:
+            data[device]["url"] = redact_url(data[device]["url"])
     return data
 
 
@@ -341,8 +364,9 @@ class Rig:
                     "request": req.model_dump(mode="json"),
                     "sweep": sweep.model_dump(),
                     "config": public_config(cfg),
-                    "scanner_url": self.scanner_url,
-                    "motor_url": self.motor_url,
+                    "scanner_url": redact_url(self.scanner_url),
+                    "motor_url": redact_url(self.motor_url),
+                    "redacted": list(SECRET_KEYS),
                     "dialect": dialect,
                     "time_base": "host CLOCK_MONOTONIC + epoch offset, ns",
                 },

@@ -2,10 +2,11 @@
 
 A measurement goes ``queued -> running -> done | failed``, or ``queued | running -> cancelled``.
 It keeps its request, progress (0..1 and a message), the result JSON, the failure reason and the
-paths of its raw MCAP log and its cloud (PLY). Everything survives a restart: on opening, a
-measurement left ``running`` by a process that died is marked ``failed`` (the rig's state after
-the crash is unknown, so the sweep is not silently resumed), while ``queued`` ones stay queued
-and the job runner picks them up again in order.
+paths of its raw MCAP log and its cloud (PLY). Everything survives a restart: at start-up the
+job runner marks a measurement left ``running`` by a process that died ``failed``
+(:meth:`Store.fail_interrupted`, with what is left of its raw log and ``raw_truncated``; the rig's
+state after the crash is unknown, so the sweep is not silently resumed), while ``queued`` ones
+stay queued and the job runner picks them up again in order.
 
 The connection is shared by the threads of one process behind a lock; the file uses SQLite's
 write-ahead log so readers never wait for a writer. :attr:`Store.version` tells readers when
@@ -46,7 +47,8 @@ CREATE TABLE IF NOT EXISTS measurements (
     error TEXT,
     raw_path TEXT,
     cloud_path TEXT,
-    schedule_id TEXT
+    schedule_id TEXT,
+    raw_truncated INTEGER NOT NULL DEFAULT 0
 );
 CREATE INDEX IF NOT EXISTS measurements_state ON measurements(state, seq);
 CREATE TABLE IF NOT EXISTS schedules (
@@ -62,6 +64,11 @@ CREATE TABLE IF NOT EXISTS schedules (
     last_measurement_id TEXT
 );
 """
+
+
+#: The failure reason of a measurement a dead process left running (the job runner adds what it
+#: recovered of the raw log).
+INTERRUPTED = "the service process died during this measurement (found at restart); it was not resumed"
 
 
 class StoreError(ServiceError):
@@ -87,6 +94,7 @@ class Measurement:
     raw_path: str | None
     cloud_path: str | None
     schedule_id: str | None
+    raw_truncated: bool = False  # the raw log was rebuilt from a file cut short (the process died)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -126,6 +134,9 @@ class Store:
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=NORMAL")
             self._db.executescript(_SCHEMA)
+            columns = {r[1] for r in self._db.execute("PRAGMA table_info(measurements)")}
+            if "raw_truncated" not in columns:  # a store written before the column existed
+                self._db.execute("ALTER TABLE measurements ADD COLUMN raw_truncated INTEGER NOT NULL DEFAULT 0")
         except sqlite3.Error as exc:
             raise StoreError(f"cannot open result store {path}: {exc}") from None
         self._lock = threading.RLock()
@@ -255,16 +266,34 @@ class Store:
             (time.time(), reason),
         )
 
+    def interrupted(self) -> list[str]:
+        """Ids of the measurements left ``running`` (by a process that died, when read at start-up)."""
+        with self._lock:
+            return [r[0] for r in self._db.execute("SELECT id FROM measurements WHERE state = 'running' ORDER BY seq")]
+
+    def fail_interrupted(
+        self,
+        mid: str,
+        reason: str = INTERRUPTED,
+        raw_path: str | None = None,
+        cloud_path: str | None = None,
+        raw_truncated: bool = False,
+    ) -> Measurement:
+        """Mark one measurement a dead process left ``running`` as failed, with what is left of its data."""
+        return self._transition(
+            mid,
+            ("running",),
+            "state = 'failed', finished_at = ?, message = 'failed', error = ?, "
+            "raw_path = COALESCE(?, raw_path), cloud_path = COALESCE(?, cloud_path), raw_truncated = ?",
+            (time.time(), reason, raw_path, cloud_path, int(raw_truncated)),
+        )
+
     def recover_interrupted(self) -> list[str]:
-        """Mark measurements a dead process left ``running`` as failed; return their ids."""
-        with self._tx() as db:
-            ids = [r[0] for r in db.execute("SELECT id FROM measurements WHERE state = 'running'")]
-            db.execute(
-                "UPDATE measurements SET state = 'failed', finished_at = ?, message = 'failed', "
-                "error = 'the service stopped during this measurement (restart); it was not resumed' "
-                "WHERE state = 'running'",
-                (time.time(),),
-            )
+        """Mark measurements a dead process left ``running`` as failed; return their ids (the job
+        runner does this per measurement with :meth:`fail_interrupted`, after recovering the raw log)."""
+        ids = self.interrupted()
+        for mid in ids:
+            self.fail_interrupted(mid)
         return ids
 
     # -- schedules ------------------------------------------------------------------------
@@ -328,6 +357,7 @@ def _measurement(row: sqlite3.Row) -> Measurement:
         raw_path=row["raw_path"],
         cloud_path=row["cloud_path"],
         schedule_id=row["schedule_id"],
+        raw_truncated=bool(row["raw_truncated"]),
     )
 
 

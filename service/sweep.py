@@ -30,6 +30,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from lrms.kinematics import RigCalibration, forward
 from service.errors import ServiceError
+from service.mcaplog import foxglove_time
 from service.timesync import ClockSync
 
 FloatArray = NDArray[np.float64]
@@ -504,7 +505,7 @@ def run_sweep(
             return
         phase[0] = "sweep"
         sweep_t[0] = clock_ns(time.monotonic())
-        emit("sweep_start", {"t_ns": sweep_t[0]})
+        emit("sweep_start", {"time": foxglove_time(sweep_t[0])})
         if plan.mode == "constant":
             post = plan.stop + plan.direction * plan.run_up
             motor.move_to(
@@ -529,7 +530,7 @@ def run_sweep(
                 if abort.wait(0.05 + (plan.scans_per_step + 1) / f):
                     return
         sweep_t[1] = clock_ns(time.monotonic())
-        emit("sweep_end", {"t_ns": sweep_t[1]})
+        emit("sweep_end", {"time": foxglove_time(sweep_t[1])})
         phase[0] = "run-out"
 
     cover_until = [math.nan]  # host s: the last beam of the first scan seen to begin after the sweep's end

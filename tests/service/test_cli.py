@@ -12,8 +12,10 @@ from pathlib import Path
 
 import httpx
 
+from service import mcaplog
 from service.cli.serve import LISTENING
 from tests.conftest import REPO
+from tests.service.logcheck import assert_json_is_javascript_safe
 
 LRMS = [sys.executable, "-m", "service.cli.main"]
 
@@ -47,6 +49,8 @@ def test_measure_then_replay(tmp_path: Path) -> None:
     assert u["d_min_m"] <= 0.1375 <= u["d_max_m"] and abs(result["diameter_m"] - 0.1375) <= 4 * u["std_m"]
     assert "%" in proc.stderr  # the progress bar
     assert out.stat().st_size > 100_000 and plot.read_bytes()[:4] == b"\x89PNG"
+    msgs, _ = mcaplog.read_log(out)
+    assert_json_is_javascript_safe(msgs)  # no integer above 2^53 in any JSON message
     rep = subprocess.run([*LRMS, "replay", str(out)], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert rep.returncode == 0, rep.stderr
     replayed = json.loads(rep.stdout)

@@ -122,6 +122,15 @@ def test_truncated_file_yields_every_complete_chunk(tmp_path: Path) -> None:
         assert all(m.decode() is not None for m in got)
 
 
+def test_json_times_are_foxglove_sec_nsec() -> None:
+    t = 1_795_482_796_737_577_436  # > 2**53: a JavaScript number would round it
+    assert ml.foxglove_time(t) == {"sec": 1_795_482_796, "nsec": 737_577_436}
+    assert ml.time_ns_of(ml.foxglove_time(t)) == t
+    assert ml.time_ns_of(t) == t  # the plain integer of logs written before
+    with pytest.raises(ml.McapLogError, match="not a logged time"):
+        ml.time_ns_of(1.5)
+
+
 def test_killed_writer_leaves_flushed_chunks_readable(tmp_path: Path) -> None:
     path = tmp_path / "crash.mcap"
     child = textwrap.dedent(

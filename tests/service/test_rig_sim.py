@@ -21,13 +21,14 @@ import httpx
 import numpy as np
 import pytest
 
-from service import mcaplog
+from service import mcaplog, mcaprecovery
 from service.api import ServerThread, create_app
 from service.config import parse_config, parse_toml
 from service.pointio import read_points
 from service.replay import replay
 from service.rig import build_service
 from tests.conftest import REPO
+from tests.service.logcheck import assert_json_is_javascript_safe
 
 TRUTH_D = 0.1375
 TOKEN = "hil-token"
@@ -164,6 +165,7 @@ def test_measures_the_cylinder_with_the_rig_in_another_process(sim_process: RigP
         motor_t = np.array([m.log_time_ns for m in msgs if m.topic == mcaplog.TOPIC_MOTOR])
         assert motor_t.size == res["sweep"]["motor_samples"]  # every motor sample is logged
         assert np.all(np.diff(np.sort(motor_t)) > 0)  # distinct sample instants
+        assert_json_is_javascript_safe(msgs)  # no integer above 2^53 in any JSON message
         n_tel = sum(m.topic == mcaplog.TOPIC_TELEGRAM for m in msgs)
         assert n_tel == res["sweep"]["scans_received"]  # every scan received is in the log
         ply = tmp_path / "cloud.ply"
@@ -179,6 +181,12 @@ def test_measures_the_cylinder_with_the_rig_in_another_process(sim_process: RigP
         partial = replay(cut)
         assert partial["truncated"] is True and partial["reproduced"] is None
         assert 0 < partial["result"]["sweep"]["scans_received"] < res["sweep"]["scans_received"]
+        # rebuilt into a complete file (as the service does on restart), it replays the same
+        recovery = mcaprecovery.recover_log(cut)
+        assert recovery.truncated and mcaprecovery.has_summary(cut)
+        again = replay(cut)
+        assert again["truncated"] is True and again["recovered"]["messages"] == str(recovery.messages)
+        assert again["result"] == partial["result"]
     finally:
         svc.stop()
         rig.close()

@@ -33,6 +33,7 @@ def measurement_out(m: Measurement) -> MeasurementOut:
         result=m.result,
         error=m.error,
         has_raw=m.raw_path is not None,
+        raw_truncated=m.raw_truncated,
         has_cloud=m.cloud_path is not None,
         schedule_id=m.schedule_id,
     )
