@@ -1,18 +1,16 @@
 """Every recorded telegram of real SICK devices decodes, whatever way the bytes arrive.
 
-Recordings (shared/reference/sick-recordings/, see its README): an LMS111 and an LMS511 CoLa B
-session (pcap JSON, one complete telegram per entry), a TiM781S pcapng where each 3374-byte
-telegram came in two TCP segments (1448 + 1926), and an MRS1000 CoLa A scan as text.
+Recordings (tests/data/sick-recordings/, extracts of shared/reference/sick-recordings/; see its
+README): an LMS111 and an LMS511 CoLa B session (every telegram, one complete frame each), a TiM781S
+pcapng where each 3374-byte telegram came in two TCP segments (1448 + 1926), and an MRS1000 CoLa A
+scan as text.
 """
 
 from __future__ import annotations
 
 import itertools
-import json
 from collections import Counter
 from collections.abc import Iterable
-from functools import lru_cache
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -34,17 +32,7 @@ from drivers.lms100 import (
     frame,
 )
 from tests.lms100.pcapng import tcp_segments
-
-LMS111 = "20210302_lms111.pcapng.json"
-LMS511 = "20210301_lms511.pcapng.json"
-TIM781S = "tim781s_scandata_split_segments.pcapng"
-MRS1000 = "mrs1000_cola_a_scandata.txt"
-
-
-@lru_cache(maxsize=4)
-def _json_telegrams(path: Path) -> tuple[bytes, ...]:
-    entries = json.loads(path.read_text())
-    return tuple(bytes.fromhex(e["_source"]["layers"]["tcp"]["tcp.payload"].replace(":", "")) for e in entries)
+from tests.lms100.recordings import LMS111, LMS511, MRS1000, RECORDINGS_DIR, TIM781S, session_frames
 
 
 def _decode_stream(chunks: Iterable[bytes], dialect: Dialect) -> list[Message]:
@@ -67,8 +55,8 @@ def _one_byte_at_a_time(data: bytes) -> Iterable[bytes]:
 
 
 @pytest.mark.parametrize("name", [LMS111, LMS511])
-def test_json_sessions_decode_and_reencode_byte_exact(recordings_dir: Path, name: str) -> None:
-    telegrams = _json_telegrams(recordings_dir / name)
+def test_json_sessions_decode_and_reencode_byte_exact(name: str) -> None:
+    telegrams = session_frames(name)
     assert len(telegrams) == 277
     msgs = _decode_stream(telegrams, Dialect.B)  # checksums are verified by the framer
     assert len(msgs) == 277
@@ -79,16 +67,16 @@ def test_json_sessions_decode_and_reencode_byte_exact(recordings_dir: Path, name
 
 
 @pytest.mark.parametrize("name", [LMS111, LMS511])
-def test_json_sessions_fed_whole_and_one_byte_at_a_time(recordings_dir: Path, name: str) -> None:
-    telegrams = _json_telegrams(recordings_dir / name)
+def test_json_sessions_fed_whole_and_one_byte_at_a_time(name: str) -> None:
+    telegrams = session_frames(name)
     expected = _decode_stream(telegrams, Dialect.B)
     stream = b"".join(telegrams)
     assert _decode_stream([stream], Dialect.B) == expected
     assert _decode_stream(_one_byte_at_a_time(stream), Dialect.B) == expected
 
 
-def test_lms111_session(recordings_dir: Path) -> None:
-    msgs = _decode_stream(_json_telegrams(recordings_dir / LMS111), Dialect.B)
+def test_lms111_session() -> None:
+    msgs = _decode_stream(session_frames(LMS111), Dialect.B)
     kinds = Counter(type(m).__name__ for m in msgs)
     assert kinds["ScanDataEvent"] == 175 and kinds["ErrorReply"] == 0
     assert msgs[0] == SetAccessMode(3, 0xF4724744)
@@ -133,8 +121,8 @@ def test_lms111_session(recordings_dir: Path) -> None:
     assert np.all((steps == 0) | ((steps > 19_000) & (steps < 21_000)))
 
 
-def test_lms511_session_with_sfa_and_8bit_rssi(recordings_dir: Path) -> None:
-    msgs = _decode_stream(_json_telegrams(recordings_dir / LMS511), Dialect.B)
+def test_lms511_session_with_sfa_and_8bit_rssi() -> None:
+    msgs = _decode_stream(session_frames(LMS511), Dialect.B)
     errors = [(prev, m) for prev, m in itertools.pairwise(msgs) if isinstance(m, ErrorReply)]
     assert len(errors) == 18
     assert [prev for prev, _ in errors] == [RawTelegram("sRN", f"field{i:03d}") for i in range(30, 48)]
@@ -162,8 +150,8 @@ def test_lms511_session_with_sfa_and_8bit_rssi(recordings_dir: Path) -> None:
     assert steps.min() > 39_000 and steps.max() < 41_000
 
 
-def test_tim781s_pcapng_split_segments(recordings_dir: Path) -> None:
-    segments = [s for s in tcp_segments(recordings_dir / TIM781S) if s.src_port == 2112]
+def test_tim781s_pcapng_split_segments() -> None:
+    segments = [s for s in tcp_segments(RECORDINGS_DIR / TIM781S) if s.src_port == 2112]
     assert [len(s.payload) for s in segments] == [1448, 1926] * 16
     conn = CoLaConnection(Dialect.B, "client")
     scans = []
@@ -191,8 +179,8 @@ def test_tim781s_pcapng_split_segments(recordings_dir: Path) -> None:
     assert np.diff([s.telegram_counter for s in scans]).tolist() == [1] * 15
 
 
-def test_mrs1000_cola_a_scan(recordings_dir: Path) -> None:
-    raw = (recordings_dir / MRS1000).read_bytes()
+def test_mrs1000_cola_a_scan() -> None:
+    raw = (RECORDINGS_DIR / MRS1000).read_bytes()
     msgs = _decode_stream([raw], Dialect.A)
     assert len(msgs) == 1 and isinstance(msgs[0], ScanDataEvent)
     assert _decode_stream(_one_byte_at_a_time(raw), Dialect.A) == msgs
