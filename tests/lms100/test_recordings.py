@@ -19,11 +19,15 @@ from drivers.lms100 import (
     CoLaConnection,
     Dialect,
     ErrorReply,
+    FieldDefinition,
     FirmwareVersion,
+    InputState,
     LocationName,
     Message,
     OutputRange,
+    OutputStateEvent,
     RawTelegram,
+    ReadFieldDefinition,
     ScanDataConfig,
     ScanDataEvent,
     SetAccessMode,
@@ -86,7 +90,17 @@ def test_lms111_session() -> None:
     cfg = next(m for m in msgs if isinstance(m, ScanDataConfig))
     assert cfg.output_channel == (1, 0) and not cfg.remission and cfg.time and cfg.output_rate == 1
     assert SubscribeScanDataReply(True) in msgs
-    assert any(isinstance(m, RawTelegram) and (m.kind, m.name) == ("sSN", "LIDoutputstate") for m in msgs)
+    # start-up reads of SICK's driver: 30 field definitions (10 full, 20 one-byte), the input state, and the
+    # output state sent once after its subscription (3 outputs, 8 "not used", with the time block)
+    fields = [m for m in msgs if isinstance(m, FieldDefinition)]
+    assert [f.index for f in fields] == [*range(24), 23, *range(24, 30)]  # sRA field023 captured twice
+    assert all(f.geometry is not None for f in fields[:10]) and all(f.geometry is None for f in fields[10:])
+    assert [f.geometry.field_type for f in fields[:3] if f.geometry] == [2, 1, 3]
+    assert [f.geometry.name for f in fields[:4] if f.geometry] == ["FIELD1", "FIELD2", "FIELD3", ""]
+    assert [m for m in msgs if isinstance(m, InputState)] == [InputState(1, 0, (2, 2, 2, 2))] * 2
+    (out,) = [m for m in msgs if isinstance(m, OutputStateEvent)]
+    assert [s for s, _ in out.outputs] == [0, 0, 1] + [2] * 8 and out.time is not None
+    assert out.system_counter == 1_948_949_250  # device us, 139 ms after the first scan's start
 
     scans = [m.scan for m in msgs if isinstance(m, ScanDataEvent)]
     for s in scans:
@@ -125,7 +139,7 @@ def test_lms511_session_with_sfa_and_8bit_rssi() -> None:
     msgs = _decode_stream(session_frames(LMS511), Dialect.B)
     errors = [(prev, m) for prev, m in itertools.pairwise(msgs) if isinstance(m, ErrorReply)]
     assert len(errors) == 18
-    assert [prev for prev, _ in errors] == [RawTelegram("sRN", f"field{i:03d}") for i in range(30, 48)]
+    assert [prev for prev, _ in errors] == [ReadFieldDefinition(i) for i in range(30, 48)]
     assert all(e.code == 3 and "VARIABLE_UNKNOWNINDEX" in e.message for _, e in errors)
     assert FirmwareVersion("V1.80    ") in msgs and LocationName("SN 18110550") in msgs
     cfg = next(m for m in msgs if isinstance(m, ScanDataConfig))
