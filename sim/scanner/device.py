@@ -500,8 +500,11 @@ class SimulatedLMS100:
     def set_outputs(self, active: Sequence[bool]) -> None:
         """Switch the three outputs; a change sends ``sSN LIDoutputstate`` to its subscribers."""
         with self.lock:
-            if not self.io.set_outputs(active):
-                return
+            try:
+                if not self.io.set_outputs(active):
+                    return
+            except ValueError as exc:
+                raise SimulatorError(str(exc)) from None
             self.scan_cache.clear()  # the scans' digital-output byte changes
             event: OutputStateEvent | InputStateEvent = self.io.output_state(self.clock.now_us(), self.config.data.time)
             targets = [s for s in self.sessions if "LIDoutputstate" in s.events]
@@ -511,8 +514,11 @@ class SimulatedLMS100:
     def set_inputs(self, inputs: Sequence[int]) -> None:
         """Set the four input values; a change sends ``sSN LIDinputstate`` to its subscribers."""
         with self.lock:
-            if not self.io.set_inputs(inputs, self.clock.now_us()):
-                return
+            try:
+                if not self.io.set_inputs(inputs, self.clock.now_us()):
+                    return
+            except ValueError as exc:
+                raise SimulatorError(str(exc)) from None
             event: OutputStateEvent | InputStateEvent = self.io.input_state_event(self.config.data.time)
             targets = [s for s in self.sessions if "LIDinputstate" in s.events]
             listeners = list(self._event_listeners)
