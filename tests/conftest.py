@@ -5,7 +5,6 @@ from __future__ import annotations
 import signal
 from pathlib import Path
 
-import pytest
 from hypothesis import HealthCheck, settings
 
 import service.simdevices  # noqa: F401  (registers the sim:// device URLs, as the CLI and service do)
@@ -23,17 +22,4 @@ if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
 REPO = Path(__file__).resolve().parent.parent
-SHARED = REPO.parent / "shared"
-
-
-@pytest.fixture(scope="session")
-def shared_dir() -> Path:
-    """The project's ``shared/`` folder (seeds, reference notes, SICK recordings)."""
-    if not SHARED.is_dir():
-        pytest.fail(f"shared/ folder not found beside the repository at {SHARED}")
-    return SHARED
-
-
-@pytest.fixture(scope="session")
-def recordings_dir(shared_dir: Path) -> Path:
-    return shared_dir / "reference" / "sick-recordings"
+"""The repository root. Tests read only what is inside it (recorded data: ``tests/data/``)."""

@@ -42,6 +42,9 @@ _REPLY_OF = {"sRN": "sRA", "sWN": "sWA", "sMN": "sAN", "sEN": "sEA", "sRI": "sRA
 _NAME_RE = re.compile(rb"[A-Za-z0-9_]{1,64}\Z")
 
 _REGISTRY: dict[tuple[str, str], type[Message]] = {}
+FamilyDecoder = Callable[[str, bytes, int, "Dialect"], "Message"]
+"""Decodes a telegram of a name family: ``(name, payload, parameter offset, dialect) -> Message``."""
+_FAMILIES: list[tuple[str, re.Pattern[str], FamilyDecoder]] = []
 
 
 class AccessLevel(IntEnum):
@@ -694,9 +697,13 @@ def decode_payload(payload: bytes, dialect: Dialect) -> Message:
     name = name_b.decode("ascii")
     pos = min(name_end + 1, len(payload))
     cls = _REGISTRY.get((kind, name))
-    if cls is None:
+    family = None if cls is not None else _family_decoder(kind, name)
+    if cls is None and family is None:
         return RawTelegram(kind, name, None if sp < 0 else payload[pos:])
     try:
+        if family is not None:
+            return family(name, payload, pos, dialect)
+        assert cls is not None
         return cls.decode_params(payload, pos, dialect)
     except TelegramError as exc:
         raise TelegramError(f"{kind} {name}: {exc}") from None
@@ -739,8 +746,25 @@ def is_reply_to(reply: Message, request: Message) -> bool:
 
 
 def message_classes() -> dict[tuple[str, str], type[Message]]:
-    """All modelled telegrams, keyed by (command type, name)."""
+    """All modelled telegrams with a fixed name, keyed by (command type, name) (see also :func:`is_modelled`)."""
     return dict(_REGISTRY)
+
+
+def register_family(kind: str, pattern: str, decoder: FamilyDecoder) -> None:
+    """Model the telegrams ``kind`` + any name matching ``pattern`` (``field000``...); ``decoder`` builds them."""
+    _FAMILIES.append((kind, re.compile(pattern), decoder))
+
+
+def _family_decoder(kind: str, name: str) -> FamilyDecoder | None:
+    for k, pattern, decoder in _FAMILIES:
+        if k == kind and pattern.fullmatch(name):
+            return decoder
+    return None
+
+
+def is_modelled(kind: str, name: str) -> bool:
+    """True if ``kind name`` decodes to a typed message (a fixed name or a registered family)."""
+    return (kind, name) in _REGISTRY or _family_decoder(kind, name) is not None
 
 
 def cast(msg: Message, cls: type[T]) -> T:

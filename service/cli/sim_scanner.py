@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 
 HELP = "serve a simulated SICK LMS100 (CoLa A/B over TCP) with ray-cast scans of a scene"
@@ -33,6 +34,8 @@ def run(args: argparse.Namespace) -> int:
         for name in list_scenes():
             print(f"{name:16s} {describe_scene(name)}")
         return 0
+    # rejected requests are logged by the device (WARNING): show them with time and source
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     port = args.port if args.port is not None else (2111 if args.cola == "a" else 2112)
     device = SimulatedLMS100(args.scene, seed=args.seed, realtime=args.realtime, time_scale=args.time_scale)
     server = ScannerServer(device, host=args.host, port=port, dialect=args.cola)

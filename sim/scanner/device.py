@@ -18,7 +18,14 @@ Behaviour modelled after the LMS1xx (``shared/reference/sick-cola.md``):
 * ``LMCstartmeas`` / ``LMCstopmeas`` switch measuring (STlms 7) on and off; the device boots
   measuring. ``mEEwriteall`` saves the configuration, ``mSCreboot`` restores the saved one.
 * Unknown variables answer ``sFA 3``, unknown methods ``sFA 2``, unknown events ``sFA F``,
-  out-of-range values ``sFA 4``.
+  out-of-range values ``sFA 4``; every rejected request is logged (logger ``sim.scanner.device``,
+  WARNING) with the telegram and the reason. Requests are handled in :mod:`sim.scanner.requests`.
+* What SICK's driver reads at start-up answers as the LMS111 recording does: field definitions,
+  ``LIDinputstate``, ``sSN LIDoutputstate`` at subscription and on changes (:mod:`sim.scanner.fieldio`),
+  ``SCdevicestate`` 0 while a connection is logged in.
+* The output range (``LMPoutputRange``) is kept as written; scans carry the beams from the grid point
+  nearest its start to the grid point nearest its stop (ties outward), as the LMS111 sends 541 beams
+  from -45 deg for -44.9997..224.9997 deg.
 
 Clock: microseconds since start-up (uint32 on the wire, wrapping after 71.6 min). In real-time
 mode it follows the host's monotonic clock (times ``time_scale``); otherwise it is virtual and
@@ -32,99 +39,50 @@ scan plus :data:`TRANSMIT_DELAY_US`.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from drivers.errors import DriverError
 from drivers.lms100 import (
-    PASSWORD_HASHES,
-    AccessLevel,
-    DeviceIdent,
-    DeviceReady,
-    DeviceState,
     ErrorReply,
-    FirmwareVersion,
-    LocationName,
+    FieldGeometry,
+    InputStateEvent,
     Message,
-    OperatingHours,
-    OutputRange,
+    OutputStateEvent,
     PollScan,
-    PowerOnCount,
-    RawTelegram,
-    ReadDeviceIdent,
-    ReadDeviceReady,
-    ReadDeviceState,
-    ReadFirmwareVersion,
-    ReadLocationName,
-    ReadOperatingHours,
-    ReadOutputRange,
-    ReadPowerOnCount,
-    ReadScanConfig,
-    ReadScanDataConfig,
-    ReadSerialNumber,
-    Reboot,
-    RebootReply,
-    Run,
-    RunReply,
-    SaveParameters,
-    SaveParametersReply,
     Scan,
-    ScanConfig,
-    ScanDataConfig,
     ScanDataReply,
-    ScanTime,
-    SerialNumber,
-    SetAccessMode,
-    SetAccessModeReply,
-    SetHostDialect,
-    SetHostDialectReply,
-    SetScanConfig,
-    SetScanConfigReply,
-    StartMeasurement,
-    StartMeasurementReply,
-    StopMeasurement,
-    StopMeasurementReply,
-    SubscribeScanData,
-    SubscribeScanDataReply,
-    WriteOutputRange,
-    WriteOutputRangeReply,
     WriteScanDataConfig,
-    WriteScanDataConfigReply,
     make_channel,
 )
 from lrms.kinematics import RigCalibration
+from sim.scanner.fieldio import DEFAULT_FIELDS, DeviceIO, scan_time_of
+from sim.scanner.requests import (
+    ALLOWED_SCAN_CONFIGS,
+    FIELD_START,
+    FIELD_STOP,
+    SFA_UNKNOWN_ERROR,
+    dispatch,
+)
 from sim.scene import Scene, SensorModel, cast_beams, get_scene
 
-# sFA codes used by the simulated device.
-SFA_METHOD_ACCESS_DENIED = 0x01
-SFA_UNKNOWN_METHOD = 0x02
-SFA_UNKNOWN_VARIABLE = 0x03
-SFA_OUT_OF_RANGE = 0x04
-SFA_UNKNOWN_ERROR = 0x06
-SFA_BUFFER_UNDERFLOW = 0x08
-SFA_WRITE_ACCESS_DENIED = 0x0A
-SFA_UNKNOWN_COLA_COMMAND = 0x0C
-SFA_UNKNOWN_EVENT = 0x0F
-SFA_COLA_A_INVALID_CHARACTER = 0x11
-SFA_INTERNAL = 0x14
+log = logging.getLogger(__name__)
 
-#: Accepted (scan frequency 1/100 Hz, angular resolution 1/10000 deg) pairs of an LMS1xx.
-ALLOWED_SCAN_CONFIGS = frozenset({(2500, 2500), (5000, 5000)})
-FIELD_START = -450000  # 1/10000 deg
-FIELD_STOP = 2250000
+__all__ = ["ALLOWED_SCAN_CONFIGS", "DeviceClock", "Session", "SimulatedLMS100", "SimulatorError"]
+
 #: The scan is handed to the interface this long after its last beam (us).
 TRANSMIT_DELAY_US = 1000
 U32 = 1 << 32
-#: Events an LMS1xx offers besides LMDscandata (accepted, never fired in the simulation).
-QUIET_EVENTS = frozenset({"LIDoutputstate", "LIDinputstate", "LFErec"})
 
 MotorAngleFn = Callable[[np.ndarray], np.ndarray]
+EventListener = Callable[["Session", Message], None]
 
 
 class SimulatorError(DriverError):
@@ -176,6 +134,8 @@ class Session:
     access_level: int = 0
     subscribed: bool = False
     id: int = 0
+    events: set[str] = field(default_factory=set)
+    """Subscribed events besides LMDscandata (``LIDoutputstate``, ``LIDinputstate``, ``LFErec``)."""
 
 
 @dataclass
@@ -215,6 +175,8 @@ class SimulatedLMS100:
     starts carry device status ``(1, 0)`` as real LMS1xx do (0 turns this off).
     ``reconfigure_busy_s``: after a successful ``mLMPsetscancfg`` the device reports
     ``SCdevicestate`` 0 (busy) and sends no scans for this long (device-clock seconds).
+    ``fields``: the field definitions ``sRN fieldNNN`` answers (index = position; ``None``: the
+    one-byte "no definition" answer; beyond the end: ``sFA 3``), default 10 unconfigured + 20 empty.
     """
 
     def __init__(
@@ -235,6 +197,7 @@ class SimulatedLMS100:
         location_name: str = "simulated LMS100",
         startup_status_scans: int = 7,
         reconfigure_busy_s: float = 0.0,
+        fields: Sequence[FieldGeometry | None] = DEFAULT_FIELDS,
     ) -> None:
         self.scene = get_scene(scene) if isinstance(scene, str) else scene
         if not isinstance(self.scene, Scene):
@@ -264,6 +227,11 @@ class SimulatedLMS100:
         self.host_dialect = 1
         self.reboot_requested = False
         self._virtual_next = 0
+        try:
+            self.io = DeviceIO(fields)
+        except ValueError as exc:
+            raise SimulatorError(str(exc)) from None
+        self._event_listeners: list[EventListener] = []
         self._saved = _Config()
         self._reset_volatile()
 
@@ -272,10 +240,10 @@ class SimulatedLMS100:
         self.config = self._saved.copy()
         self.measuring = True
         self.config_mode = False
-        self._config_owner: Session | None = None
+        self.config_owner: Session | None = None
         self.telegram_counter = 0
         self._busy_until_us = -1
-        self._scan_cache: OrderedDict[int, Scan] = OrderedDict()
+        self.scan_cache: OrderedDict[int, Scan] = OrderedDict()
         self._last_sent: Scan | None = None
         self._start_epoch(self.clock.now_us(), 0)
 
@@ -283,7 +251,7 @@ class SimulatedLMS100:
         self.epoch_start_us = int(start_us)
         self.epoch_index = int(index)
         self.measure_start_index = int(index)
-        self._scan_cache.clear()
+        self.scan_cache.clear()
 
     @property
     def period_us(self) -> int:
@@ -300,11 +268,22 @@ class SimulatedLMS100:
         return round(self.config.scan_frequency / 100 * 360 / (self.config.angular_resolution / 1e4) / 100)
 
     def output_angles_raw(self) -> np.ndarray:
-        """Beam angles of the output range, 1/10000 deg."""
+        """Beam angles of the output range, 1/10000 deg.
+
+        The beams lie on the scan's grid (``start_angle + k * resolution``); the output range's start
+        and stop each go to the nearest grid beam, a tie to the outer one, within the scan area. The
+        LMS111 recording fixes this for its case: written -449997..2249997 at 0.5 deg, it sends 541 beams
+        from -450000 (rounding inward would give 539 from -445000); the LMS511's -50000..1850000 at
+        0.1667 deg gives 1141 beams, its last (1850380) nearest to the stop. Neither recording tells
+        "nearest" from "always outward"; nearest is our choice.
+        """
         c = self.config
-        first = c.start_angle + math.ceil((c.out_start - c.start_angle) / c.angular_resolution) * c.angular_resolution
-        count = (c.out_stop - first) // c.angular_resolution + 1
-        return first + c.angular_resolution * np.arange(count, dtype=np.int64)
+        res = c.angular_resolution
+        lo = c.out_start - c.start_angle
+        hi = c.out_stop - c.start_angle
+        first = max(0, -((res - 2 * lo) // (2 * res)))  # ceil((2 lo - res) / 2 res): nearest, tie outward
+        last = min((c.stop_angle - c.start_angle) // res, (2 * hi + res) // (2 * res))  # nearest, tie outward
+        return c.start_angle + res * np.arange(first, last + 1, dtype=np.int64)
 
     def open_session(self) -> Session:
         with self.lock:
@@ -317,9 +296,9 @@ class SimulatedLMS100:
         with self.lock:
             if session in self.sessions:
                 self.sessions.remove(session)
-            if self._config_owner is session:  # its connection is gone: leave configuration mode
+            if self.config_owner is session:  # its connection is gone: leave configuration mode
                 self.config_mode = False
-                self._config_owner = None
+                self.config_owner = None
             self.changed.notify_all()
 
     def busy(self) -> bool:
@@ -364,7 +343,7 @@ class SimulatedLMS100:
     def make_scan(self, index: int) -> Scan:
         """Scan ``index`` of the current epoch, ray-cast (cached; counters are set on sending)."""
         with self.lock:
-            cached = self._scan_cache.get(index)
+            cached = self.scan_cache.get(index)
             if cached is not None:
                 return cached
             cfg = self.config.copy()
@@ -373,6 +352,7 @@ class SimulatedLMS100:
             inc = self.time_increment_us
             meas_freq = self.measurement_frequency
             status = (1, 0) if index - self.measure_start_index < self.startup_status_scans else (0, 0)
+            outputs = self.io.output_bits
         beam_times_s = (t.start_us + inc * np.arange(len(dev_raw))) / 1e6
         motor = np.asarray(self.motor_angle_at(beam_times_s), dtype=np.float64)
         if motor.shape != beam_times_s.shape or not np.all(np.isfinite(motor)):
@@ -395,12 +375,7 @@ class SimulatedLMS100:
                 channels_8.append(
                     make_channel("RSSI1", np.clip(np.rint(samples.rssi), 0, 255).astype(np.uint8), start_deg, step_deg)
                 )
-        time_info = None
-        if cfg.data.time:
-            secs, micro = divmod(t.start_us, 1_000_000)
-            mins, s = divmod(secs, 60)
-            hours, m = divmod(mins, 60)
-            time_info = ScanTime(1970, 1, 1 + hours // 24, hours % 24, m, s, micro)
+        time_info = scan_time_of(t.start_us) if cfg.data.time else None
         scan = Scan(
             version=1,
             device_number=1,
@@ -411,7 +386,7 @@ class SimulatedLMS100:
             time_since_startup_us=t.start_us % U32,
             time_of_transmission_us=t.transmit_us % U32,
             digital_inputs=(0, 0),
-            digital_outputs=(0, 0),
+            digital_outputs=(outputs, 0),
             layer_angle=0,
             scan_frequency=cfg.scan_frequency,
             measurement_frequency=meas_freq,
@@ -422,9 +397,9 @@ class SimulatedLMS100:
             time_info=time_info,
         )
         with self.lock:
-            self._scan_cache[index] = scan
-            while len(self._scan_cache) > 8:
-                self._scan_cache.popitem(last=False)
+            self.scan_cache[index] = scan
+            while len(self.scan_cache) > 8:
+                self.scan_cache.popitem(last=False)
         return scan
 
     def stamp(self, scan: Scan) -> Scan:
@@ -469,158 +444,32 @@ class SimulatedLMS100:
 
     # ------------------------------------------------------------------ requests
     def handle(self, session: Session, msg: Message) -> list[Message]:
-        """Replies to one decoded request (usually one message; ``sEN`` subscriptions notify)."""
+        """Replies to one decoded request (usually one message; ``sEN LIDoutputstate`` adds the state)."""
         if isinstance(msg, PollScan):
-            return [self.poll()]
-        with self.lock:
-            replies = self._dispatch(session, msg)
-            self.changed.notify_all()
-            return replies
-
-    def _need(self, session: Session, method: bool) -> ErrorReply | None:
-        if session.access_level >= AccessLevel.AUTHORIZED_CLIENT:
-            return None
-        return ErrorReply(SFA_METHOD_ACCESS_DENIED if method else SFA_WRITE_ACCESS_DENIED)
-
-    def _dispatch(self, session: Session, msg: Message) -> list[Message]:
-        c = self.config
-        if isinstance(msg, SetAccessMode):
-            try:
-                level = AccessLevel(msg.level)
-            except ValueError:
-                return [SetAccessModeReply(False)]
-            if PASSWORD_HASHES[level] != msg.password_hash:
-                return [SetAccessModeReply(False)]
-            session.access_level = int(level)
-            self.config_mode = True
-            self._config_owner = session
-            return [SetAccessModeReply(True)]
-        if isinstance(msg, Run):
-            session.access_level = 0
-            self.config_mode = False
-            self._config_owner = None
-            return [RunReply(True)]
-        if isinstance(msg, ReadScanConfig):
-            return [ScanConfig(c.scan_frequency, 1, c.angular_resolution, c.start_angle, c.stop_angle)]
-        if isinstance(msg, SetScanConfig):
-            denied = self._need(session, method=True)
-            if denied:
-                return [denied]
-            return [self._set_scan_config(msg)]
-        if isinstance(msg, ReadOutputRange):
-            return [OutputRange(1, c.angular_resolution, c.out_start, c.out_stop)]
-        if isinstance(msg, WriteOutputRange):
-            denied = self._need(session, method=False)
-            if denied:
-                return [denied]
-            ok = (
-                msg.sectors == 1
-                and msg.angular_resolution == c.angular_resolution
-                and c.start_angle <= msg.start_angle < msg.stop_angle <= c.stop_angle
-            )
-            if not ok:
-                return [ErrorReply(SFA_OUT_OF_RANGE)]
-            c.out_start, c.out_stop = msg.start_angle, msg.stop_angle
-            self._restart_epoch()
-            return [WriteOutputRangeReply()]
-        if isinstance(msg, ReadScanDataConfig):
-            d = c.data
-            return [
-                ScanDataConfig(
-                    d.output_channel, d.remission, d.resolution, d.unit, d.encoder, d.position,
-                    d.device_name, d.comment, d.time, d.output_rate,
+            reply = self.poll()
+            if isinstance(reply, ErrorReply):
+                self.log_rejection(
+                    msg, reply, "no scan leaves the device (configuration mode, stopped or busy) and none was sent"
                 )
-            ]  # fmt: skip
-        if isinstance(msg, WriteScanDataConfig):
-            denied = self._need(session, method=False)
-            if denied:
-                return [denied]
-            ok = (
-                tuple(msg.output_channel) == (1, 0)
-                and msg.resolution in (0, 1)
-                and msg.unit == 0
-                and tuple(msg.encoder) == (0, 0)
-                and not msg.position
-                and 1 <= msg.output_rate <= 50000
-            )
-            if not ok:
-                return [ErrorReply(SFA_OUT_OF_RANGE)]
-            c.data = msg
-            self._scan_cache.clear()
-            return [WriteScanDataConfigReply()]
-        if isinstance(msg, StartMeasurement):
-            denied = self._need(session, method=True)
-            if denied:
-                return [denied]
-            if not self.measuring:
-                self.measuring = True
-                self._restart_epoch(measure_start=True)
-            return [StartMeasurementReply(0)]
-        if isinstance(msg, StopMeasurement):
-            denied = self._need(session, method=True)
-            if denied:
-                return [denied]
-            self.measuring = False
-            return [StopMeasurementReply(0)]
-        if isinstance(msg, SaveParameters):
-            denied = self._need(session, method=True)
-            if denied:
-                return [denied]
-            self._saved = c.copy()
-            return [SaveParametersReply(True)]
-        if isinstance(msg, Reboot):
-            denied = self._need(session, method=True)
-            if denied:
-                return [denied]
-            self.reboot_requested = True
-            return [RebootReply()]
-        if isinstance(msg, SetHostDialect):
-            denied = self._need(session, method=False)
-            if denied:
-                return [denied]
-            if msg.dialect not in (0, 1):
-                return [ErrorReply(SFA_OUT_OF_RANGE)]
-            self.host_dialect = msg.dialect
-            return [SetHostDialectReply()]
-        if isinstance(msg, ReadDeviceState):
-            now = self.clock.now_us() // 1_000_000
-            hms = f"{now // 3600 % 24:02d}:{now // 60 % 60:02d}:{now % 60:02d}"
-            return [DeviceState(self.device_state(), False, hms, f"{1 + now // 86400:02d}.01.1970")]
-        if isinstance(msg, ReadDeviceReady):
-            return [DeviceReady(0 if self.busy() else 1)]
-        if isinstance(msg, ReadDeviceIdent):
-            return [DeviceIdent(self.device_name, self.device_version)]
-        if isinstance(msg, ReadSerialNumber):
-            return [SerialNumber(f"{self.serial_number:08d}")]
-        if isinstance(msg, ReadFirmwareVersion):
-            return [FirmwareVersion(self.firmware_version)]
-        if isinstance(msg, ReadLocationName):
-            return [LocationName(self.location_name)]
-        if isinstance(msg, ReadOperatingHours):
-            return [OperatingHours(self.clock.now_us() // 360_000_000)]
-        if isinstance(msg, ReadPowerOnCount):
-            return [PowerOnCount(self.power_on_count)]
-        if isinstance(msg, SubscribeScanData):
-            session.subscribed = bool(msg.enable)
-            return [SubscribeScanDataReply(bool(msg.enable))]
-        if isinstance(msg, RawTelegram) and msg.kind == "sEN" and msg.name in QUIET_EVENTS:
-            # Field-evaluation and I/O events exist on an LMS1xx; nothing in the simulation ever
-            # changes a field or an input, so a subscription is accepted and stays silent.
-            return [RawTelegram("sEA", msg.name, msg.params)]
-        return [self._unknown(msg)]
+            return [reply]
+        with self.lock:
+            replies, rejection = dispatch(self, session, msg)
+            self.changed.notify_all()
+        if rejection is not None:
+            self.log_rejection(msg, rejection.reply, rejection.reason)
+        return replies
 
-    def _unknown(self, msg: Message) -> ErrorReply:
-        kind = msg.kind
-        if kind in ("sRN", "sWN", "sRI", "sWI"):
-            return ErrorReply(SFA_UNKNOWN_VARIABLE)
-        if kind == "sMN":
-            return ErrorReply(SFA_UNKNOWN_METHOD)
-        if kind == "sEN":
-            return ErrorReply(SFA_UNKNOWN_EVENT)
-        return ErrorReply(SFA_UNKNOWN_COLA_COMMAND)
+    @staticmethod
+    def log_rejection(request: Message | bytes, reply: Message, reason: str) -> None:
+        """Log a turned-down request: the telegram (typed or raw bytes), the answer and why."""
+        text = repr(request) if isinstance(request, Message) else f"undecodable telegram {request!r}"
+        if len(text) > 300:
+            text = text[:300] + "..."
+        answer = reply.message if isinstance(reply, ErrorReply) else repr(reply)
+        log.warning("simulated LMS100 rejected %s: %s; answered %s", text, reason, answer)
 
-    def _restart_epoch(self, measure_start: bool = False) -> None:
-        """Scan timing changed: the next scan starts now, its counter continues."""
+    def restart_epoch(self, measure_start: bool = False) -> None:
+        """Scan timing changed: the next scan starts now, its counter continues. Call under the lock."""
         now = self.clock.now_us()
         nxt = max(self.latest_complete_index(now) + 1, self._virtual_next, self.epoch_index)
         start = max(now, self._busy_until_us)
@@ -629,32 +478,58 @@ class SimulatedLMS100:
             self.measure_start_index = -(1 << 40)  # no start-up status after a reconfiguration
         self._virtual_next = nxt
 
-    def _set_scan_config(self, msg: SetScanConfig) -> SetScanConfigReply:
-        c = self.config
-        freq_ok = msg.scan_frequency in (2500, 5000)
-        res_ok = msg.angular_resolution in (2500, 5000)
-        if freq_ok and res_ok and (msg.scan_frequency, msg.angular_resolution) not in ALLOWED_SCAN_CONFIGS:
-            res_ok = False
-        status = 0
-        if not freq_ok and not res_ok:
-            status = 3
-        elif not freq_ok:
-            status = 1
-        elif not res_ok:
-            status = 2
-        elif not (FIELD_START <= msg.start_angle < msg.stop_angle <= FIELD_STOP):
-            status = 4
-        elif msg.sectors != 1:
-            status = 5
-        if status == 0:
-            c.scan_frequency, c.angular_resolution = msg.scan_frequency, msg.angular_resolution
-            c.start_angle, c.stop_angle = msg.start_angle, msg.stop_angle
-            c.out_start, c.out_stop = max(c.out_start, c.start_angle), min(c.out_stop, c.stop_angle)
-            if c.out_start >= c.out_stop:
-                c.out_start, c.out_stop = c.start_angle, c.stop_angle
-            self._busy_until_us = self.clock.now_us() + round(self.reconfigure_busy_s * 1e6)
-            self._restart_epoch()
-        return SetScanConfigReply(status, c.scan_frequency, 1, c.angular_resolution, c.start_angle, c.stop_angle)
+    def start_busy(self) -> None:
+        """After a scan reconfiguration: busy (no scans, SCdevicestate 0) for ``reconfigure_busy_s``."""
+        self._busy_until_us = self.clock.now_us() + round(self.reconfigure_busy_s * 1e6)
+
+    def save_config(self) -> None:
+        """``mEEwriteall``: the current configuration survives a reboot."""
+        self._saved = self.config.copy()
+
+    # ------------------------------------------------------------------ digital I/O events
+    def add_event_listener(self, listener: EventListener) -> None:
+        """``listener(session, event)`` gets every I/O event for a subscribed session (the server sends it)."""
+        with self.lock:
+            self._event_listeners.append(listener)
+
+    def remove_event_listener(self, listener: EventListener) -> None:
+        with self.lock:
+            if listener in self._event_listeners:
+                self._event_listeners.remove(listener)
+
+    def set_outputs(self, active: Sequence[bool]) -> None:
+        """Switch the three outputs; a change sends ``sSN LIDoutputstate`` to its subscribers."""
+        with self.lock:
+            try:
+                if not self.io.set_outputs(active):
+                    return
+            except ValueError as exc:
+                raise SimulatorError(str(exc)) from None
+            self.scan_cache.clear()  # the scans' digital-output byte changes
+            event: OutputStateEvent | InputStateEvent = self.io.output_state(self.clock.now_us(), self.config.data.time)
+            targets = [s for s in self.sessions if "LIDoutputstate" in s.events]
+            listeners = list(self._event_listeners)
+        self._notify(listeners, targets, event)
+
+    def set_inputs(self, inputs: Sequence[int]) -> None:
+        """Set the four input values; a change sends ``sSN LIDinputstate`` to its subscribers."""
+        with self.lock:
+            try:
+                if not self.io.set_inputs(inputs, self.clock.now_us()):
+                    return
+            except ValueError as exc:
+                raise SimulatorError(str(exc)) from None
+            event: OutputStateEvent | InputStateEvent = self.io.input_state_event(self.config.data.time)
+            targets = [s for s in self.sessions if "LIDinputstate" in s.events]
+            listeners = list(self._event_listeners)
+        self._notify(listeners, targets, event)
+
+    @staticmethod
+    def _notify(listeners: list[EventListener], targets: list[Session], event: Message) -> None:
+        """Outside the lock: a listener may block on a socket."""
+        for session in targets:
+            for listener in listeners:
+                listener(session, event)
 
     def reboot(self) -> None:
         """Power cycle: sessions end, the saved configuration returns, counters restart."""
@@ -664,6 +539,7 @@ class SimulatedLMS100:
             for s in self.sessions:
                 s.access_level = 0
                 s.subscribed = False
+                s.events.clear()
             self._virtual_next = 0
             self._reset_volatile()
             self.changed.notify_all()

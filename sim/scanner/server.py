@@ -33,16 +33,14 @@ from drivers.lms100 import (
     ScanDataEvent,
     TelegramError,
     decode_payload,
-    message_classes,
+    is_modelled,
 )
-from sim.scanner.device import (
+from sim.scanner.device import Session, SimulatedLMS100, SimulatorError
+from sim.scanner.requests import (
     SFA_BUFFER_UNDERFLOW,
     SFA_COLA_A_INVALID_CHARACTER,
     SFA_INTERNAL,
     SFA_UNKNOWN_COLA_COMMAND,
-    Session,
-    SimulatedLMS100,
-    SimulatorError,
 )
 
 log = logging.getLogger(__name__)
@@ -134,6 +132,7 @@ class ScannerServer:
         sock.settimeout(0.2)
         self._listener = sock
         self._stop.clear()
+        self.device.add_event_listener(self._push_event)
         for target, name in ((self._accept_loop, "accept"), (self._stream_loop, "stream")):
             t = threading.Thread(target=target, name=f"lms100-sim-{name}", daemon=True)
             t.start()
@@ -142,6 +141,7 @@ class ScannerServer:
 
     def stop(self) -> None:
         self._stop.set()
+        self.device.remove_event_listener(self._push_event)
         with self.device.changed:
             self.device.changed.notify_all()
         if self._listener is not None:
@@ -238,10 +238,14 @@ class ScannerServer:
     def _answer(self, session: Session, payload: bytes) -> list[Message]:
         try:
             msg = decode_payload(payload, self.dialect)
-        except TelegramError:
-            return [ErrorReply(self._decode_error_code(payload))]
+        except TelegramError as exc:
+            reply = ErrorReply(self._decode_error_code(payload))
+            self.device.log_rejection(payload, reply, f"cannot decode it: {exc}")
+            return [reply]
         if msg.kind not in _REQUEST_KINDS:
-            return [ErrorReply(SFA_UNKNOWN_COLA_COMMAND)]
+            reply = ErrorReply(SFA_UNKNOWN_COLA_COMMAND)
+            self.device.log_rejection(msg, reply, f"{msg.kind} is a reply/event type, not a request")
+            return [reply]
         try:
             return self.device.handle(session, msg)
         except Exception:  # a bug or a failing motor_angle_at callback: the device reports an internal error
@@ -255,9 +259,19 @@ class ScannerServer:
         head = payload.split(b" ", 2)
         if len(head) >= 2:
             key = (head[0].decode("latin-1"), head[1].decode("latin-1"))
-            if key[0] in _REQUEST_KINDS and key in message_classes():
+            if key[0] in _REQUEST_KINDS and is_modelled(*key):
                 return SFA_BUFFER_UNDERFLOW  # a known telegram with missing or malformed parameters
         return SFA_UNKNOWN_COLA_COMMAND
+
+    def _push_event(self, session: Session, event: Message) -> None:
+        """An I/O event (``sSN LIDoutputstate`` / ``LIDinputstate``) for the client of ``session``."""
+        with self._clients_lock:
+            clients = [c for c in self._clients if c.session is session and not c.closed]
+        for client in clients:
+            try:
+                client.send([event])
+            except (OSError, CoLaError):
+                self._remove(client)
 
     # ------------------------------------------------------------------ streaming
     def _subscribed_clients(self) -> list[_Client]:

@@ -277,8 +277,8 @@ def test_unmodelled_names_decode_raw_and_round_trip() -> None:
     raw = decode_payload(lfe, Dialect.B)
     assert raw == RawTelegram("sSN", "LFErec", _b("0004 0001 01"))
     assert raw.encode(Dialect.B) == lfe
-    bare = decode_payload(b"sRN field030", Dialect.A)
-    assert bare == RawTelegram("sRN", "field030", None) and bare.encode(Dialect.A) == b"sRN field030"
+    bare = decode_payload(b"sRN LFPmeanfilter", Dialect.A)
+    assert bare == RawTelegram("sRN", "LFPmeanfilter", None) and bare.encode(Dialect.A) == b"sRN LFPmeanfilter"
     assert decode_payload(b"sMA mSCreboot", Dialect.A) == RawTelegram("sMA", "mSCreboot", None)
 
 

@@ -1,18 +1,16 @@
 """Every recorded telegram of real SICK devices decodes, whatever way the bytes arrive.
 
-Recordings (shared/reference/sick-recordings/, see its README): an LMS111 and an LMS511 CoLa B
-session (pcap JSON, one complete telegram per entry), a TiM781S pcapng where each 3374-byte
-telegram came in two TCP segments (1448 + 1926), and an MRS1000 CoLa A scan as text.
+Recordings (tests/data/sick-recordings/, extracts of shared/reference/sick-recordings/; see its
+README): an LMS111 and an LMS511 CoLa B session (every telegram, one complete frame each), a TiM781S
+pcapng where each 3374-byte telegram came in two TCP segments (1448 + 1926), and an MRS1000 CoLa A
+scan as text.
 """
 
 from __future__ import annotations
 
 import itertools
-import json
 from collections import Counter
 from collections.abc import Iterable
-from functools import lru_cache
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,11 +19,15 @@ from drivers.lms100 import (
     CoLaConnection,
     Dialect,
     ErrorReply,
+    FieldDefinition,
     FirmwareVersion,
+    InputState,
     LocationName,
     Message,
     OutputRange,
+    OutputStateEvent,
     RawTelegram,
+    ReadFieldDefinition,
     ScanDataConfig,
     ScanDataEvent,
     SetAccessMode,
@@ -34,17 +36,7 @@ from drivers.lms100 import (
     frame,
 )
 from tests.lms100.pcapng import tcp_segments
-
-LMS111 = "20210302_lms111.pcapng.json"
-LMS511 = "20210301_lms511.pcapng.json"
-TIM781S = "tim781s_scandata_split_segments.pcapng"
-MRS1000 = "mrs1000_cola_a_scandata.txt"
-
-
-@lru_cache(maxsize=4)
-def _json_telegrams(path: Path) -> tuple[bytes, ...]:
-    entries = json.loads(path.read_text())
-    return tuple(bytes.fromhex(e["_source"]["layers"]["tcp"]["tcp.payload"].replace(":", "")) for e in entries)
+from tests.lms100.recordings import LMS111, LMS511, MRS1000, RECORDINGS_DIR, TIM781S, session_frames
 
 
 def _decode_stream(chunks: Iterable[bytes], dialect: Dialect) -> list[Message]:
@@ -67,8 +59,8 @@ def _one_byte_at_a_time(data: bytes) -> Iterable[bytes]:
 
 
 @pytest.mark.parametrize("name", [LMS111, LMS511])
-def test_json_sessions_decode_and_reencode_byte_exact(recordings_dir: Path, name: str) -> None:
-    telegrams = _json_telegrams(recordings_dir / name)
+def test_json_sessions_decode_and_reencode_byte_exact(name: str) -> None:
+    telegrams = session_frames(name)
     assert len(telegrams) == 277
     msgs = _decode_stream(telegrams, Dialect.B)  # checksums are verified by the framer
     assert len(msgs) == 277
@@ -79,16 +71,16 @@ def test_json_sessions_decode_and_reencode_byte_exact(recordings_dir: Path, name
 
 
 @pytest.mark.parametrize("name", [LMS111, LMS511])
-def test_json_sessions_fed_whole_and_one_byte_at_a_time(recordings_dir: Path, name: str) -> None:
-    telegrams = _json_telegrams(recordings_dir / name)
+def test_json_sessions_fed_whole_and_one_byte_at_a_time(name: str) -> None:
+    telegrams = session_frames(name)
     expected = _decode_stream(telegrams, Dialect.B)
     stream = b"".join(telegrams)
     assert _decode_stream([stream], Dialect.B) == expected
     assert _decode_stream(_one_byte_at_a_time(stream), Dialect.B) == expected
 
 
-def test_lms111_session(recordings_dir: Path) -> None:
-    msgs = _decode_stream(_json_telegrams(recordings_dir / LMS111), Dialect.B)
+def test_lms111_session() -> None:
+    msgs = _decode_stream(session_frames(LMS111), Dialect.B)
     kinds = Counter(type(m).__name__ for m in msgs)
     assert kinds["ScanDataEvent"] == 175 and kinds["ErrorReply"] == 0
     assert msgs[0] == SetAccessMode(3, 0xF4724744)
@@ -98,7 +90,17 @@ def test_lms111_session(recordings_dir: Path) -> None:
     cfg = next(m for m in msgs if isinstance(m, ScanDataConfig))
     assert cfg.output_channel == (1, 0) and not cfg.remission and cfg.time and cfg.output_rate == 1
     assert SubscribeScanDataReply(True) in msgs
-    assert any(isinstance(m, RawTelegram) and (m.kind, m.name) == ("sSN", "LIDoutputstate") for m in msgs)
+    # start-up reads of SICK's driver: 30 field definitions (10 full, 20 one-byte), the input state, and the
+    # output state sent once after its subscription (3 outputs, 8 "not used", with the time block)
+    fields = [m for m in msgs if isinstance(m, FieldDefinition)]
+    assert [f.index for f in fields] == [*range(24), 23, *range(24, 30)]  # sRA field023 captured twice
+    assert all(f.geometry is not None for f in fields[:10]) and all(f.geometry is None for f in fields[10:])
+    assert [f.geometry.field_type for f in fields[:3] if f.geometry] == [2, 1, 3]
+    assert [f.geometry.name for f in fields[:4] if f.geometry] == ["FIELD1", "FIELD2", "FIELD3", ""]
+    assert [m for m in msgs if isinstance(m, InputState)] == [InputState(1, 0, (2, 2, 2, 2))] * 2
+    (out,) = [m for m in msgs if isinstance(m, OutputStateEvent)]
+    assert [s for s, _ in out.outputs] == [0, 0, 1] + [2] * 8 and out.time is not None
+    assert out.system_counter == 1_948_949_250  # device us, 139 ms after the first scan's start
 
     scans = [m.scan for m in msgs if isinstance(m, ScanDataEvent)]
     for s in scans:
@@ -133,11 +135,11 @@ def test_lms111_session(recordings_dir: Path) -> None:
     assert np.all((steps == 0) | ((steps > 19_000) & (steps < 21_000)))
 
 
-def test_lms511_session_with_sfa_and_8bit_rssi(recordings_dir: Path) -> None:
-    msgs = _decode_stream(_json_telegrams(recordings_dir / LMS511), Dialect.B)
+def test_lms511_session_with_sfa_and_8bit_rssi() -> None:
+    msgs = _decode_stream(session_frames(LMS511), Dialect.B)
     errors = [(prev, m) for prev, m in itertools.pairwise(msgs) if isinstance(m, ErrorReply)]
     assert len(errors) == 18
-    assert [prev for prev, _ in errors] == [RawTelegram("sRN", f"field{i:03d}") for i in range(30, 48)]
+    assert [prev for prev, _ in errors] == [ReadFieldDefinition(i) for i in range(30, 48)]
     assert all(e.code == 3 and "VARIABLE_UNKNOWNINDEX" in e.message for _, e in errors)
     assert FirmwareVersion("V1.80    ") in msgs and LocationName("SN 18110550") in msgs
     cfg = next(m for m in msgs if isinstance(m, ScanDataConfig))
@@ -162,8 +164,8 @@ def test_lms511_session_with_sfa_and_8bit_rssi(recordings_dir: Path) -> None:
     assert steps.min() > 39_000 and steps.max() < 41_000
 
 
-def test_tim781s_pcapng_split_segments(recordings_dir: Path) -> None:
-    segments = [s for s in tcp_segments(recordings_dir / TIM781S) if s.src_port == 2112]
+def test_tim781s_pcapng_split_segments() -> None:
+    segments = [s for s in tcp_segments(RECORDINGS_DIR / TIM781S) if s.src_port == 2112]
     assert [len(s.payload) for s in segments] == [1448, 1926] * 16
     conn = CoLaConnection(Dialect.B, "client")
     scans = []
@@ -191,8 +193,8 @@ def test_tim781s_pcapng_split_segments(recordings_dir: Path) -> None:
     assert np.diff([s.telegram_counter for s in scans]).tolist() == [1] * 15
 
 
-def test_mrs1000_cola_a_scan(recordings_dir: Path) -> None:
-    raw = (recordings_dir / MRS1000).read_bytes()
+def test_mrs1000_cola_a_scan() -> None:
+    raw = (RECORDINGS_DIR / MRS1000).read_bytes()
     msgs = _decode_stream([raw], Dialect.A)
     assert len(msgs) == 1 and isinstance(msgs[0], ScanDataEvent)
     assert _decode_stream(_one_byte_at_a_time(raw), Dialect.A) == msgs

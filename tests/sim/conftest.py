@@ -17,6 +17,8 @@ class Link:
         self.sock = socket.create_connection(address, timeout=10)
         self.conn = CoLaConnection(dialect, role="client")
         self.events: list[Scan] = []
+        self.other_events: list[Message] = []
+        """``sSN`` events other than scans (LIDoutputstate, LIDinputstate), in arrival order."""
 
     def _next(self) -> Message:
         while True:
@@ -32,13 +34,28 @@ class Link:
         self.sock.sendall(data)
 
     def reply(self) -> Message:
-        """The next message that is not a scan event (events are kept in ``self.events``)."""
+        """The next message that is not an event (scans are kept in ``self.events``, others in ``other_events``)."""
         while True:
             msg = self._next()
             if isinstance(msg, ScanDataEvent):
                 self.events.append(msg.scan)
                 continue
+            if msg.kind == "sSN":
+                self.other_events.append(msg)
+                continue
             return msg
+
+    def event(self) -> Message:
+        """The next ``sSN`` event other than a scan (scans that arrive meanwhile go to ``self.events``)."""
+        while not self.other_events:
+            msg = self._next()
+            if isinstance(msg, ScanDataEvent):
+                self.events.append(msg.scan)
+            elif msg.kind == "sSN":
+                self.other_events.append(msg)
+            else:
+                raise AssertionError(f"expected an event, got {msg!r}")
+        return self.other_events.pop(0)
 
     def request(self, msg: Message) -> Message:
         self.sock.sendall(self.conn.send(msg))

@@ -10,7 +10,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from drivers.lms100 import DeviceIdent, PollScan, ReadDeviceIdent, ScanDataReply
+from drivers.lms100 import DeviceIdent, ErrorReply, PollScan, RawTelegram, ReadDeviceIdent, ScanDataReply
 from tests.conftest import REPO
 from tests.sim.conftest import Link
 
@@ -36,10 +36,13 @@ def test_cli_serves_until_interrupted(connect: Callable[..., Link]) -> None:
         assert isinstance(polled, ScanDataReply)
         ahead = np.abs(polled.scan.angles_rad - np.pi / 2) < np.deg2rad(1)
         assert np.all(np.abs(polled.scan.ranges_m[ahead] - 3.0) < 0.08)  # the wall 3 m ahead
+        assert link.request(RawTelegram("sRN", "LFPmeanfilter")) == ErrorReply(3)
         link.close()
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=20)
         assert proc.returncode == 0, err
+        # the rejected request is logged on stderr with its reason
+        assert re.search(r"WARNING sim\.scanner\.device: simulated LMS100 rejected .*LFPmeanfilter.*not simulated", err)
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -47,6 +47,7 @@ from drivers.lms100 import (
     StartMeasurement,
     StartMeasurementReply,
     StopMeasurement,
+    SubscribeOutputStateReply,
     SubscribeScanData,
     SubscribeScanDataReply,
     WriteOutputRange,
@@ -163,7 +164,7 @@ def test_scan_area_and_sector_errors_and_sfa_codes(fast_server: ScannerServer, c
     assert link.request(RawTelegram("sRN", "field030")) == ErrorReply(0x03)
     assert link.request(RawTelegram("sMN", "mNoSuchMethod")) == ErrorReply(0x02)
     assert link.request(RawTelegram("sEN", "InertialMeasurementUnit", b"\x01")) == ErrorReply(0x0F)
-    assert link.request(RawTelegram("sEN", "LIDoutputstate", b"\x01")) == RawTelegram("sEA", "LIDoutputstate", b"\x01")
+    assert link.request(RawTelegram("sEN", "LIDoutputstate", b"\x01")) == SubscribeOutputStateReply(True)
     link.send_raw(frame(b"sMN mLMPsetscancfg \x00\x00\x13\x88", Dialect.B))
     assert link.reply() == ErrorReply(0x08)
     link.send_raw(frame(b"sRA LMPscancfg", Dialect.B))
