@@ -329,7 +329,7 @@ class ScannerClient:
             raise LoginError(f"unknown access level {level} (2 maintenance, 3 authorized client, 4 service)") from None
         pw = PASSWORD_HASHES[level_enum] if password_hash is None else password_hash
         if not 0 <= pw <= 0xFFFFFFFF:
-            raise LoginError(f"password hash 0x{pw:X} does not fit 32 bits")
+            raise LoginError("password hash does not fit 32 bits")  # a secret: never in a message
         msg = SetAccessMode(int(level_enum), pw)
         self._check_login(self._request(msg, SetAccessModeReply), msg)
         self._update_session(login=msg, run_after_login=False)
@@ -581,9 +581,8 @@ class ScannerClient:
 
     def _check_login(self, reply: SetAccessModeReply, msg: SetAccessMode) -> None:
         if not reply.success:
-            raise LoginError(
-                f"{self.address} refused SetAccessMode level {msg.level} with password hash 0x{msg.password_hash:08X}"
-            )
+            # the hash is a secret: the message (logged, stored as a measurement's error) names the level only
+            raise LoginError(f"{self.address} refused SetAccessMode level {msg.level}: wrong password hash")
 
     def _update_session(self, **changes: Any) -> None:
         with self._state:
