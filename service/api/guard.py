@@ -28,14 +28,14 @@ Scope = dict[str, Any]
 Message = dict[str, Any]
 
 
-async def reply(send: Any, status: int, detail: str, headers: dict[str, str] | None = None) -> None:
-    """A JSON ``{"detail": ...}`` response that closes the connection (any unread body stays unread)."""
+async def reply(send: Any, status: int, detail: str, headers: dict[str, str] | None = None, close: bool = True) -> None:
+    """A JSON ``{"detail": ...}`` response; ``close``: the server then closes the connection, so the
+    unread rest of a refused body is never read (a client still sending gets a broken pipe, and
+    then reads this answer, as curl and httpx do)."""
     body = json.dumps({"detail": detail}).encode()
-    raw = [
-        (b"content-type", b"application/json"),
-        (b"content-length", str(len(body)).encode()),
-        (b"connection", b"close"),
-    ]
+    raw = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
+    if close:
+        raw.append((b"connection", b"close"))
     raw += [(k.lower().encode(), v.encode()) for k, v in (headers or {}).items()]
     await send({"type": "http.response.start", "status": status, "headers": raw})
     await send({"type": "http.response.body", "body": body, "more_body": False})
@@ -70,7 +70,8 @@ class BodyGuard:
                 auth.check(config, auth.bearer(authorization), "operator")
             except auth.Denied as exc:
                 self.refused += 1
-                await reply(send, exc.status, exc.detail, exc.headers)
+                has_body = chunked or (length is not None and length.strip() not in (b"", b"0"))
+                await reply(send, exc.status, exc.detail, exc.headers, close=has_body)
                 return
         limit = config.api.max_body_bytes
         if length is not None:
