@@ -80,4 +80,5 @@ def check(config: RigConfig, token: str | None, need: Role) -> None:
     if role is None:
         raise Denied(401, "invalid bearer token")
     if RANK[role] < RANK[need]:
-        raise Denied(403, f"this needs the {' or '.join(able)} token; the token given is a {role} token")
+        article = "an" if role in ("admin", "operator") else "a"
+        raise Denied(403, f"this needs the {' or '.join(able)} token; the token given is {article} {role} token")
