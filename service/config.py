@@ -7,8 +7,12 @@ file, lengths in metres (keys say so: ``*_deg``, ``*_m``). Every table rejects u
 typo is an error rather than a silent default. :func:`load_config` raises :class:`ConfigError`
 with the file name and the offending key.
 
-The bearer token of the REST API's write endpoints comes from ``[auth] token`` or, when that is
-empty, the ``LRMS_API_TOKEN`` environment variable; with neither, write endpoints are refused.
+The REST API's bearer tokens (``[auth]``): an operator token (start and cancel measurements), an
+admin token (everything, schedules included) and optionally a read-only token; each from its key
+or, when that is empty, its environment variable (:data:`TOKEN_ENVS`). ``[auth] token`` and
+``LRMS_API_TOKEN`` are the deprecated names of the operator token. ``[auth] read`` says whether
+reads need a token too (``"token"``, the default of a rig file) or are open (``"open"``, the
+built-in simulated rig). ``[api]`` holds the HTTP server's body limit and TLS files.
 """
 
 from __future__ import annotations
@@ -27,6 +31,15 @@ from lrms.kinematics import RigCalibration
 from service.errors import ConfigError
 
 TOKEN_ENV = "LRMS_API_TOKEN"
+"""Deprecated environment name of the operator token (read when ``LRMS_OPERATOR_TOKEN`` is unset)."""
+Role = Literal["read", "operator", "admin"]
+TOKEN_ENVS: dict[Role, str] = {
+    "read": "LRMS_READ_TOKEN",
+    "operator": "LRMS_OPERATOR_TOKEN",
+    "admin": "LRMS_ADMIN_TOKEN",
+}
+"""The environment variable of each role's token (used when the config key is empty)."""
+DEFAULT_MAX_BODY_BYTES = 1 << 20
 DEFAULT_RIG = "default_rig.toml"
 
 
@@ -65,7 +78,8 @@ class ScannerConfig(DeviceConfig):
             raise ValueError(f"an LMS1xx scans at 0.25 or 0.5 deg, not {v}")
         return v
 
-    login_password_hash: int | None = None
+    login_password_hash: int | None = Field(default=None, ge=0, le=0xFFFFFFFF, repr=False)
+    """A secret: never in ``/rig``, logs or error messages."""
 
     @model_validator(mode="after")
     def _mode(self) -> ScannerConfig:
@@ -111,7 +125,43 @@ class StorageConfig(_Strict):
 
 
 class AuthConfig(_Strict):
-    token: str = ""
+    """Bearer tokens of the REST API per role, and whether reads need one. Token values are
+    secrets: excluded from ``repr`` (tracebacks, debug logs) and never echoed in errors."""
+
+    operator_token: str = Field(default="", repr=False)
+    admin_token: str = Field(default="", repr=False)
+    read_token: str = Field(default="", repr=False)
+    token: str = Field(default="", repr=False)
+    """Deprecated name of ``operator_token``."""
+    read: Literal["open", "token"] = "token"
+
+    @model_validator(mode="after")
+    def _one_operator_token(self) -> AuthConfig:
+        if self.token and self.operator_token:
+            raise ValueError("token is the deprecated name of operator_token: give only operator_token")
+        keys = {"operator_token": self.operator_token or self.token, "admin_token": self.admin_token}
+        keys["read_token"] = self.read_token
+        given = [(k, v) for k, v in keys.items() if v]
+        for i, (k1, v1) in enumerate(given):
+            for k2, v2 in given[i + 1 :]:
+                if v1 == v2:  # the values are secrets: name the keys only
+                    raise ValueError(f"{k1} and {k2} are the same token: each role needs its own")
+        return self
+
+
+class ApiConfig(_Strict):
+    """The HTTP server: largest request body, TLS certificate and key (PEM files; relative paths
+    are relative to the config file)."""
+
+    max_body_bytes: int = Field(default=DEFAULT_MAX_BODY_BYTES, ge=1024, le=1 << 30)
+    tls_cert: Path | None = None
+    tls_key: Path | None = None
+
+    @model_validator(mode="after")
+    def _tls_pair(self) -> ApiConfig:
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ValueError("tls_cert and tls_key go together: give both or neither")
+        return self
 
 
 class SweepConfig(_Strict):
@@ -171,6 +221,7 @@ class RigConfig(_Strict):
     noise: NoiseConfig = Field(default_factory=NoiseConfig)
     storage: StorageConfig = Field(default_factory=StorageConfig)
     auth: AuthConfig = Field(default_factory=AuthConfig)
+    api: ApiConfig = Field(default_factory=ApiConfig)
     sweep: SweepConfig = Field(default_factory=SweepConfig)
     fit: FitConfig = Field(default_factory=FitConfig)
 
@@ -198,9 +249,18 @@ class RigConfig(_Strict):
     def is_sim(self) -> bool:
         return self.sim is not None
 
+    def role_token(self, role: Role) -> str | None:
+        """The bearer token of ``role``, or None when none is configured: the ``[auth]`` key, else
+        the role's environment variable (read on every call, so a changed environment counts)."""
+        a = self.auth
+        if role == "operator":
+            return a.operator_token or a.token or os.environ.get(TOKEN_ENVS[role]) or os.environ.get(TOKEN_ENV) or None
+        key = a.admin_token if role == "admin" else a.read_token
+        return key or os.environ.get(TOKEN_ENVS[role]) or None
+
     def api_token(self) -> str | None:
-        """The bearer token for write endpoints, or None when none is configured."""
-        return self.auth.token or os.environ.get(TOKEN_ENV) or None
+        """The operator token (the old single write token's role)."""
+        return self.role_token("operator")
 
 
 def _format_errors(exc: ValidationError) -> str:
@@ -221,6 +281,11 @@ def parse_config(data: dict[str, Any], base_dir: Path | None = None, source: str
     if base_dir is not None and not cfg.storage.dir.is_absolute():
         storage = cfg.storage.model_copy(update={"dir": (base_dir / cfg.storage.dir).resolve()})
         cfg = cfg.model_copy(update={"storage": storage})
+    if base_dir is not None and cfg.api.tls_cert is not None and cfg.api.tls_key is not None:
+        api = cfg.api.model_copy(
+            update={"tls_cert": base_dir / cfg.api.tls_cert, "tls_key": base_dir / cfg.api.tls_key}
+        )
+        cfg = cfg.model_copy(update={"api": api})
     return cfg
 
 

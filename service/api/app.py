@@ -2,8 +2,10 @@
 
 :class:`Service` (service.api.core) bundles what the routes need (config, store, job runner,
 scheduler, metrics and the rig's description); :func:`create_app` builds the app around one, from
-one router module per resource (service.api.routes), and holds the error handlers and the request
-counting middleware. The app starts the job runner and the scheduler when it starts serving and
+one router module per resource (service.api.routes), and holds the error handlers and the
+middleware: request counting outermost, then the body guard (token of a POST/PUT/PATCH and the
+body size, decided before the body is read: service.api.guard). The docs pages are served from
+local assets (service.api.docs). The app starts the job runner and the scheduler when it starts serving and
 stops them on shutdown.
 """
 
@@ -22,6 +24,8 @@ from fastapi.responses import JSONResponse
 
 from lrms import __version__
 from service.api.core import Service
+from service.api.docs import mount_docs
+from service.api.guard import BodyGuard
 from service.api.routes import measurements, ops, rig, schedules
 from service.errors import ServiceError
 from service.jobs import Metrics
@@ -61,6 +65,8 @@ def create_app(service: Service, manage_lifecycle: bool = True) -> FastAPI:
         version=__version__,
         description="Sweeps of the laser radar measurement system: measurements, raw logs, clouds, schedules.",
         lifespan=lifespan,
+        docs_url=None,  # mount_docs: Swagger UI and ReDoc from local assets, not a CDN
+        redoc_url=None,
     )
     app.state.service = service
 
@@ -92,7 +98,9 @@ def create_app(service: Service, manage_lifecycle: bool = True) -> FastAPI:
     app.include_router(ops.router)
     for module in (rig, measurements, schedules):
         app.include_router(module.router, prefix="/api/v1")
-    app.add_middleware(_CountRequests, metrics=service.metrics)
+    mount_docs(app)
+    app.add_middleware(BodyGuard, service=service)
+    app.add_middleware(_CountRequests, metrics=service.metrics)  # added last: outermost, counts the guard's answers
     return app
 
 

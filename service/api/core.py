@@ -105,7 +105,12 @@ class Service:
             self.runner.stop()
 
     def token(self) -> str | None:
-        return self.config.api_token()
+        """The operator token (None: not configured)."""
+        return self.config.role_token("operator")
+
+    def write_enabled(self) -> bool:
+        """Whether any token may write (an operator or an admin token is configured)."""
+        return self.token() is not None or self.config.role_token("admin") is not None
 
 
 def _settle_heap() -> None:

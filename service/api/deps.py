@@ -1,14 +1,20 @@
-"""FastAPI dependencies of the routes: the :class:`Service` behind the app and the token check."""
+"""FastAPI dependencies of the routes: the :class:`Service` behind the app and the role checks.
+
+``READ``, ``OPERATE`` and ``ADMIN`` are route (or router) dependency lists: a bearer token of at
+least that role (:mod:`service.api.auth`); ``READ`` passes everyone when ``[auth] read = "open"``.
+``*_RESPONSES`` declare the status codes they add to a route's OpenAPI entry.
+"""
 
 from __future__ import annotations
 
-import secrets
-from typing import Annotated
+from typing import Annotated, Any
 
-from fastapi import Depends, HTTPException, Request, status
+from fastapi import Depends, HTTPException, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from service.api import auth
 from service.api.core import Service
+from service.config import Role
 
 _bearer = HTTPBearer(auto_error=False)
 
@@ -20,29 +26,51 @@ def get_service(request: Request) -> Service:
 
 
 ServiceDep = Annotated[Service, Depends(get_service)]
+Credentials = Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
 
 
-def require_token(
-    service: ServiceDep,
-    creds: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
-) -> None:
-    """Write endpoints: a configured token, presented as ``Authorization: Bearer <token>``."""
-    expected = service.token()
-    if expected is None:
-        raise HTTPException(
-            status.HTTP_403_FORBIDDEN,
-            "write endpoints are disabled: no API token configured ([auth] token or LRMS_API_TOKEN)",
-        )
-    if creds is None or creds.scheme.lower() != "bearer":
-        raise HTTPException(
-            status.HTTP_401_UNAUTHORIZED,
-            "missing bearer token (Authorization: Bearer <token>)",
-            headers={"WWW-Authenticate": "Bearer"},
-        )
-    if not secrets.compare_digest(creds.credentials.encode(), expected.encode()):
-        raise HTTPException(
-            status.HTTP_401_UNAUTHORIZED, "invalid bearer token", headers={"WWW-Authenticate": "Bearer"}
-        )
+def _require(service: Service, creds: HTTPAuthorizationCredentials | None, need: Role) -> None:
+    token = creds.credentials if creds is not None and creds.scheme.lower() == "bearer" else None
+    try:
+        auth.check(service.config, token or None, need)
+    except auth.Denied as exc:
+        raise HTTPException(exc.status, exc.detail, headers=exc.headers or None) from None
 
 
-WRITE = [Depends(require_token)]
+def require_read(service: ServiceDep, creds: Credentials) -> None:
+    """Reads: a read, operator or admin token when ``[auth] read = "token"``; nothing when open."""
+    _require(service, creds, "read")
+
+
+def require_operator(service: ServiceDep, creds: Credentials) -> None:
+    """Start and cancel measurements: the operator or admin token."""
+    _require(service, creds, "operator")
+
+
+def require_admin(service: ServiceDep, creds: Credentials) -> None:
+    """Schedules (and any configuration, calibration or deletion endpoint): the admin token."""
+    _require(service, creds, "admin")
+
+
+def _error(description: str) -> dict[str, Any]:
+    return {
+        "description": description,
+        "content": {
+            "application/json": {
+                "schema": {"type": "object", "properties": {"detail": {"type": "string"}}, "required": ["detail"]}
+            }
+        },
+    }
+
+
+_401 = _error("missing or invalid bearer token")
+_403 = _error("the token's role may not do this, or no token of the needed role is configured")
+_413 = _error("request body larger than [api] max_body_bytes")
+
+READ = [Depends(require_read)]
+OPERATE = [Depends(require_operator)]
+ADMIN = [Depends(require_admin)]
+WRITE = OPERATE
+"""Deprecated name of ``OPERATE``."""
+READ_RESPONSES: dict[int | str, dict[str, Any]] = {401: _401, 403: _403}
+WRITE_RESPONSES: dict[int | str, dict[str, Any]] = {401: _401, 403: _403, 413: _413}

@@ -288,6 +288,9 @@ def test_login_refused(make_server: ServerFactory, clients: list[ScannerClient])
     with pytest.raises(LoginError, match="refused SetAccessMode level 3: wrong password hash") as refused:
         c.login(3, password_hash=0x12345678)
     assert "12345678" not in str(refused.value) and str(0x12345678) not in str(refused.value)  # a secret
+    with pytest.raises(LoginError, match="does not fit 32 bits") as too_big:
+        c.login(3, password_hash=0x1_2345_6789)
+    assert "123456789" not in str(too_big.value)
     with pytest.raises(LoginError, match="unknown access level"):
         c.login(9)
     c.login(2)  # maintenance with its factory hash

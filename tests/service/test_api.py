@@ -49,9 +49,11 @@ class GatedMeasure:
 
 
 def _config(tmp_path: Path, token: str | None = TOKEN) -> Any:
-    text = f"[sim]\n[storage]\ndir = '{tmp_path / 'data'}'\n"
+    """Reads open (the role checks are in test_security.py); ``token`` is the admin token (it may
+    do everything)."""
+    text = f"[sim]\n[storage]\ndir = '{tmp_path / 'data'}'\n[auth]\nread = 'open'\n"
     if token is not None:
-        text += f"[auth]\ntoken = '{token}'\n"
+        text += f"admin_token = '{token}'\n"
     return parse_toml(text)
 
 
@@ -108,8 +110,8 @@ def test_no_token_configured_disables_writes(tmp_path: Path, monkeypatch: pytest
     svc = Service(_config(tmp_path, token=None), GatedMeasure())
     with ServerThread(create_app(svc)) as srv, httpx.Client(base_url=srv.url) as client:
         r = client.post("/api/v1/measurements", json=CYL, headers=AUTH)
-        assert r.status_code == 403 and "no API token configured" in r.json()["detail"]
-        monkeypatch.setenv(TOKEN_ENV, TOKEN)  # the environment variable enables them
+        assert r.status_code == 403 and "write endpoints are disabled" in r.json()["detail"]
+        monkeypatch.setenv(TOKEN_ENV, TOKEN)  # the (deprecated) environment variable enables them
         r = client.post("/api/v1/measurements", json=CYL, headers=AUTH)
         assert r.status_code == 202
 

@@ -110,6 +110,7 @@ def hil_config_text(urls: dict[str, str], data_dir: Path) -> str:
         dir = "{data_dir}"
         [auth]
         token = "{TOKEN}"
+        read = "open"
         [fit]
         roi_min_m = [0.12, 2.30, -0.09]
         roi_max_m = [0.44, 2.76, 0.75]
@@ -198,7 +199,7 @@ def sim_service(tmp_path: Path) -> Iterator[tuple[Any, Any, httpx.Client]]:
     cfg = parse_toml(text, base_dir=tmp_path)
     data = cfg.model_dump(mode="json")
     data["sim"]["process"] = False  # in this process: the tests reach into the simulated drive and scanner
-    cfg = parse_config({**data, "auth": {"token": TOKEN}}, base_dir=tmp_path)
+    cfg = parse_config({**data, "auth": {"token": TOKEN, "read": "open"}}, base_dir=tmp_path)
     svc, rig = build_service(cfg)
     try:
         with ServerThread(create_app(svc)) as srv, httpx.Client(base_url=srv.url, timeout=30) as client:
@@ -236,6 +237,7 @@ def test_elbow_target_on_the_simulated_elbow(tmp_path: Path) -> None:
         dir = "{tmp_path}"
         [auth]
         token = "{TOKEN}"
+        read = "open"
         [fit]
         roi_min_m = [-1.0, 1.0, -0.5]
         roi_max_m = [1.5, 3.0, 1.0]

@@ -12,11 +12,11 @@ from fastapi.responses import FileResponse, StreamingResponse
 from pydantic import TypeAdapter
 
 from service.api.core import JsonBytes, Service
-from service.api.deps import WRITE, ServiceDep
+from service.api.deps import OPERATE, READ, READ_RESPONSES, WRITE_RESPONSES, ServiceDep
 from service.models import MeasurementOut, MeasurementRequest, resolve_sweep
 from service.store import FINAL_STATES, STATES, Measurement
 
-router = APIRouter(prefix="/measurements", tags=["measurements"])
+router = APIRouter(prefix="/measurements", tags=["measurements"], dependencies=READ, responses=READ_RESPONSES)
 _MEASUREMENTS = TypeAdapter(list[MeasurementOut])
 
 
@@ -39,7 +39,13 @@ def measurement_out(m: Measurement) -> MeasurementOut:
     )
 
 
-@router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=MeasurementOut, dependencies=WRITE)
+@router.post(
+    "",
+    status_code=status.HTTP_202_ACCEPTED,
+    response_model=MeasurementOut,
+    dependencies=OPERATE,
+    responses=WRITE_RESPONSES,
+)
 def create_measurement(req: MeasurementRequest, response: Response, service: ServiceDep) -> MeasurementOut:
     try:
         resolve_sweep(req.sweep, service.config)
@@ -77,7 +83,7 @@ async def get_measurement(mid: str, service: ServiceDep) -> Response:
     return JsonBytes(service.cache.get(f"m:{mid}", build))
 
 
-@router.post("/{mid}/cancel", response_model=MeasurementOut, dependencies=WRITE)
+@router.post("/{mid}/cancel", response_model=MeasurementOut, dependencies=OPERATE, responses=WRITE_RESPONSES)
 def cancel_measurement(mid: str, service: ServiceDep) -> MeasurementOut:
     return measurement_out(service.runner.cancel(mid))
 

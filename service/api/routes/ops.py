@@ -1,4 +1,8 @@
-"""``/healthz`` and ``/metrics``: outside ``/api/v1``, for probes and Prometheus."""
+"""``/healthz`` and ``/metrics``: outside ``/api/v1``, for probes and Prometheus.
+
+``/healthz`` is always open (liveness probes carry no token; it tells only status, version, the
+running measurement's id and the queue length). ``/metrics`` needs a read token when ``[auth] read
+= "token"`` (Prometheus sends one with ``authorization: {credentials: ...}`` in its scrape config)."""
 
 from __future__ import annotations
 
@@ -9,7 +13,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from lrms import __version__
 from service.api.core import JsonBytes
-from service.api.deps import ServiceDep
+from service.api.deps import READ, READ_RESPONSES, ServiceDep
 
 router = APIRouter(tags=["ops"])
 
@@ -30,6 +34,6 @@ async def healthz(service: ServiceDep) -> Response:
     return JsonBytes(service.cache.get(f"healthz:{service.runner.running_id}", build))
 
 
-@router.get("/metrics", response_class=Response)
+@router.get("/metrics", response_class=Response, dependencies=READ, responses=READ_RESPONSES)
 def metrics(service: ServiceDep) -> Response:
     return Response(generate_latest(service.metrics.registry), media_type=CONTENT_TYPE_LATEST)

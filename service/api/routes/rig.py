@@ -11,9 +11,9 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.encoders import jsonable_encoder
 
 from service.api.core import JsonBytes, Service
-from service.api.deps import ServiceDep
+from service.api.deps import READ, READ_RESPONSES, ServiceDep
 
-router = APIRouter(tags=["rig"])
+router = APIRouter(tags=["rig"], dependencies=READ, responses=READ_RESPONSES)
 
 _LIVE_PERIOD_S = 0.25
 
@@ -46,7 +46,7 @@ async def rig(service: ServiceDep) -> Response:
                 live.read_at = time.monotonic()
     info = {
         **_static(service),
-        "write_enabled": service.token() is not None,
+        "write_enabled": service.write_enabled(),
         "busy": service.runner.running_id is not None,
         **live.info,
     }

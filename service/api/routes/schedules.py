@@ -6,11 +6,11 @@ from fastapi import APIRouter, HTTPException, Response
 from pydantic import TypeAdapter
 
 from service.api.core import JsonBytes
-from service.api.deps import WRITE, ServiceDep
+from service.api.deps import ADMIN, READ, READ_RESPONSES, WRITE_RESPONSES, ServiceDep
 from service.models import ScheduleOut, ScheduleRequest, resolve_sweep
 from service.store import Schedule
 
-router = APIRouter(prefix="/schedules", tags=["schedules"])
+router = APIRouter(prefix="/schedules", tags=["schedules"], dependencies=READ, responses=READ_RESPONSES)
 _SCHEDULES = TypeAdapter(list[ScheduleOut])
 
 
@@ -27,7 +27,7 @@ def schedule_out(s: Schedule) -> ScheduleOut:
     )
 
 
-@router.post("", status_code=201, response_model=ScheduleOut, dependencies=WRITE)
+@router.post("", status_code=201, response_model=ScheduleOut, dependencies=ADMIN, responses=WRITE_RESPONSES)
 def create_schedule(req: ScheduleRequest, service: ServiceDep) -> ScheduleOut:
     try:
         resolve_sweep(req.measurement.sweep, service.config)
@@ -49,7 +49,7 @@ async def get_schedule(sid: str, service: ServiceDep) -> ScheduleOut:
     return schedule_out(service.store.get_schedule(sid))
 
 
-@router.delete("/{sid}", status_code=204, dependencies=WRITE)
+@router.delete("/{sid}", status_code=204, dependencies=ADMIN)
 def delete_schedule(sid: str, service: ServiceDep) -> Response:
     service.store.delete_schedule(sid)
     return Response(status_code=204)
