@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Callable
+import dataclasses
 from dataclasses import dataclass, fields
 from enum import IntEnum
 from typing import Any, ClassVar, TypeVar, dataclass_transform
@@ -173,7 +174,8 @@ class SetAccessMode(Message):
     """Log in: ``sMN SetAccessMode 03 F4724744``. Level 3 with the default hash by default."""
 
     level: int = AccessLevel.AUTHORIZED_CLIENT
-    password_hash: int = PASSWORD_HASHES[AccessLevel.AUTHORIZED_CLIENT]
+    # a secret: left out of repr, so a logged request (the simulator logs what it turns down) never shows it
+    password_hash: int = dataclasses.field(default=PASSWORD_HASHES[AccessLevel.AUTHORIZED_CLIENT], repr=False)
 
     @classmethod
     def default(cls, level: AccessLevel = AccessLevel.AUTHORIZED_CLIENT) -> SetAccessMode:

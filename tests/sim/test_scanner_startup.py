@@ -200,3 +200,5 @@ def test_every_rejected_request_is_logged(
     ]
     for msg, (telegram, reason, answer) in zip(messages, expect, strict=True):
         assert msg.startswith("simulated LMS100 rejected") and telegram in msg and reason in msg and answer in msg
+    # the refused password hash is a secret: in no log line, in hex or decimal
+    assert not any(s in m.upper() for m in messages for s in ("12345678", str(0x12345678))), messages
