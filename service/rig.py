@@ -374,8 +374,10 @@ class Rig:
                     progress=ctx.progress,
                     cancelled=lambda: ctx.cancelled,
                     on_event=on_event,
+                    max_duration_s=cfg.sweep.max_duration_s,
                 )
             except BaseException as exc:
+                ctx.info["scans"] = {"received": recorder.gaps.received, "missing": recorder.gaps.missing}
                 state = "cancelled" if isinstance(exc, Cancelled) else "failed"
                 logf.log_json(
                     mcaplog.TOPIC_RESULT, now_ns(), {"state": state, "reason": str(exc) or type(exc).__name__}
@@ -385,6 +387,7 @@ class Rig:
                 raise
             if metrics is not None:
                 metrics.scans_missing.inc(recorder.gaps.missing)
+            ctx.info["scans"] = {"received": recorder.gaps.received, "missing": recorder.gaps.missing}
             ctx.progress(0.86, "mapping")
             try:
                 mapped, result = finish_measurement(recorder, cfg, req, sweep, outcome.t_start_ns, outcome.t_end_ns)
@@ -406,12 +409,27 @@ class Rig:
         return mcaplog.json_safe(result)  # type: ignore[no-any-return]
 
 
-def build_service(config: RigConfig, open_rig: bool = True) -> tuple[Any, Rig]:
-    """The REST service for ``config`` with its rig (opened unless told otherwise)."""
+def build_service(
+    config: RigConfig, open_rig: bool = True, *, isolate: bool = True, log_level: str = "info"
+) -> tuple[Any, Any]:
+    """The REST service for ``config`` with its rig (opened unless told otherwise).
+
+    ``isolate`` (the default, and what ``lrms serve`` and ``lrms measure`` use): the rig runs in
+    its own process (:class:`service.rigproc.RigSupervisor`), and the service gets its
+    measurement function, device state, health and drive reset from there. ``isolate=False``
+    keeps a :class:`Rig` in this process (library use; no isolation from request handling).
+    """
     from service.api import Service
 
+    if isolate:
+        from service.rigproc import RigSupervisor
+
+        sup = RigSupervisor(config, log_level=log_level)
+        if open_rig:
+            sup.open()
+        svc = Service(config, sup.measure, rig_info=sup.describe, rig_health=sup.health, rig_reset=sup.reset)
+        return svc, sup
     rig = Rig(config)
     if open_rig:
         rig.open()
-    svc = Service(config, rig.measure, rig_info=rig.describe)
-    return svc, rig
+    return Service(config, rig.measure, rig_info=rig.describe), rig

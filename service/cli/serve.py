@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
 
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     cfg = load_config(args.config, storage_dir=args.data)
-    svc, rig = build_service(cfg)
+    svc, rig = build_service(cfg, log_level=args.log_level)  # the rig in its own process (service.rigproc)
 
     def terminated(signum: int, frame: object) -> None:
         # uvicorn shuts down gracefully on SIGTERM, then raises the signal again with the handler
