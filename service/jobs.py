@@ -111,7 +111,7 @@ class Metrics:
         )
         self.queue_rejected = Counter(
             "lrms_measurements_rejected",
-            "Measurement requests refused because the queue was full",
+            "Measurements refused because the queue was full (requests and schedule runs)",
             registry=self.registry,
         )
         self.http_requests = Counter(

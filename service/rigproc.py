@@ -639,7 +639,7 @@ class RigSupervisor:
         elif st is None or proc["state_age_s"] is None:
             reasons.append("no state from the rig process yet")
         else:
-            if proc["state_age_s"] > max(2.0, 8 * self.status_period_s):
+            if proc["state_age_s"] > max(5.0, 20 * self.status_period_s):
                 reasons.append(f"no state from the rig process for {proc['state_age_s']:.1f} s")
             motor = st.info.get("motor", {})
             drive = {"state": motor.get("state"), "fault": motor.get("fault")}
