@@ -191,6 +191,29 @@ def sweep_info(recorder: SweepRecorder, mapped: MappedSweep, sweep: ResolvedSwee
     }
 
 
+def device_health(info: dict[str, Any]) -> tuple[list[str], dict[str, Any], bool | None]:
+    """From :meth:`Rig.describe`'s output: what keeps the rig from measuring (a drive in FAULT or
+    FAULT_REACTION_ACTIVE with its code, a drive not readable or without samples, a scanner not
+    connected), the drive's ``{"state", "fault"}`` and whether the scanner is connected."""
+    reasons: list[str] = []
+    motor = info.get("motor", {})
+    drive = {"state": motor.get("state"), "fault": motor.get("fault")}
+    name = str(motor.get("state") or "UNKNOWN")
+    if motor.get("error"):
+        reasons.append(f"drive not readable: {motor['error']}")
+    elif "FAULT" in name:
+        fault = motor.get("fault") or {}
+        code = fault.get("code")
+        what = f"0x{code:04X}: {fault.get('reason')}" if isinstance(code, int) else "no fault code"
+        reasons.append(f"drive {name} ({what})")
+    elif name == "UNKNOWN":
+        reasons.append("drive state unknown (no sample from the drive)")
+    connected = info.get("scanner", {}).get("connected")
+    if connected is False:
+        reasons.append("scanner not connected")
+    return reasons, drive, connected
+
+
 class Rig:
     """Scanner + motor of one rig (see the module docstring)."""
 
@@ -263,6 +286,21 @@ class Rig:
                     log.exception("closing the %s failed", name)
                 setattr(self, name, None)
 
+    def reset(self) -> dict[str, Any]:
+        """Clear a drive fault (``POST /api/v1/rig/reset``): ``{"ok", "error", "motor"}``."""
+        if self.motor is None:
+            raise ServiceError("the rig is not open")
+        if not self._lock.acquire(blocking=False):
+            return {"ok": False, "error": "a measurement is running", "motor": self.describe(0.0).get("motor", {})}
+        try:
+            self.motor.reset_fault()
+            error = None
+        except Exception as exc:
+            error = f"{type(exc).__name__}: {exc}"
+        finally:
+            self._lock.release()
+        return {"ok": error is None, "error": error, "motor": self.describe(0.0).get("motor", {})}
+
     def __enter__(self) -> Rig:
         return self.open()
 
@@ -304,6 +342,16 @@ class Rig:
         if self.sim is not None:
             out["sim"] = self.sim.describe()
         return out
+
+    def health(self) -> dict[str, Any]:
+        """``/healthz``'s rig part for a rig in this process (see :func:`device_health`)."""
+        reasons, drive, connected = device_health(self.describe())
+        return {
+            "status": "degraded" if reasons else "ok",
+            "reasons": reasons,
+            "drive": drive,
+            "scanner_connected": connected,
+        }
 
     # -- a measurement --------------------------------------------------------------------
     def measure(self, ctx: JobContext) -> dict[str, Any]:
@@ -432,4 +480,4 @@ def build_service(
     rig = Rig(config)
     if open_rig:
         rig.open()
-    return Service(config, rig.measure, rig_info=rig.describe), rig
+    return Service(config, rig.measure, rig_info=rig.describe, rig_health=rig.health, rig_reset=rig.reset), rig

@@ -1,7 +1,8 @@
 """The rig process: the rig's real-time work in a process of its own, supervised by the service.
 
 The API process (uvicorn, the job runner, the store, the scheduler) never touches a device. A
-child process (``multiprocessing``, spawn) opens the :class:`service.rig.Rig`: the scanner
+child process (``python -m service.rigproc``, talking over a socket pair wrapped in a
+``multiprocessing`` connection) opens the :class:`service.rig.Rig`: the scanner
 client's reader thread (scan ingest), the CANopen driver's SYNC and master-heartbeat thread, the
 sweep's motion thread and loop, and the raw MCAP writer all run there, so nothing the API
 process does (parsing a 40 MB request body, a flood of requests, a full garbage collection)
@@ -35,9 +36,11 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import multiprocessing
 import queue
 import signal
+import socket
+import subprocess
+import sys
 import threading
 import time
 from collections import deque
@@ -50,12 +53,23 @@ from service.config import RigConfig
 from service.errors import ServiceError
 from service.jobs import Cancelled, JobContext
 from service.models import MeasurementRequest
+from service.rig import device_health
 from service.store import Measurement
 
 log = logging.getLogger(__name__)
 
 
 # -- messages -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Boot:
+    """The first message to a new rig process: what to open and how."""
+
+    config: RigConfig
+    log_level: str
+    status_period_s: float
+    after_crash: bool
 
 
 @dataclass(frozen=True)
@@ -274,8 +288,23 @@ def _stop_if_enabled(rig: Any) -> None:
         log.warning("the drive was still enabled after the rig process died: quick stop (%s)", err or "accepted")
 
 
+def main(argv: list[str] | None = None) -> int:
+    """``python -m service.rigproc FD``: the rig process (started by :class:`RigSupervisor`; FD is
+    its end of the socket pair, and the first message on it is a :class:`Boot`)."""
+    args = sys.argv[1:] if argv is None else argv
+    conn = Connection(int(args[0]))
+    try:
+        boot = conn.recv()
+    except (EOFError, OSError):
+        return 1
+    if not isinstance(boot, Boot):
+        return 2
+    child_main(conn, boot.config, boot.log_level, boot.status_period_s, boot.after_crash)
+    return 0
+
+
 def child_main(conn: Connection, config: RigConfig, log_level: str, status_period_s: float, after_crash: bool) -> None:
-    """Entry point of the rig process (spawned by :class:`RigSupervisor`)."""
+    """The rig process's work: open the rig, report, run commands until told to stop or the pipe closes."""
     import os
 
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -329,7 +358,7 @@ def child_main(conn: Connection, config: RigConfig, log_level: str, status_perio
             elif isinstance(cmd, CancelCmd):
                 worker.cancel(cmd.mid)
             elif isinstance(cmd, ResetCmd):
-                outbox.send(_reset(rig, worker))
+                outbox.send(ResetDone(**rig.reset()))  # refused while a measurement runs
             elif isinstance(cmd, ShutdownCmd):
                 break
             else:
@@ -340,16 +369,6 @@ def child_main(conn: Connection, config: RigConfig, log_level: str, status_perio
         worker.join(30.0)
         rig.close()
         outbox.close()
-
-
-def _reset(rig: Any, worker: _Worker) -> ResetDone:
-    if worker.busy is not None:
-        return ResetDone(False, f"measurement {worker.busy} is running", _motor_state(rig))
-    try:
-        rig.motor.reset_fault()
-    except Exception as exc:
-        return ResetDone(False, f"{type(exc).__name__}: {exc}", _motor_state(rig))
-    return ResetDone(True, None, _motor_state(rig))
 
 
 # -- the API side ---------------------------------------------------------------------------
@@ -397,8 +416,7 @@ class RigSupervisor:
         self.motor_url: str | None = config.motor.url
         self.restarts = 0
         self.last_exit: str | None = None
-        self._ctx = multiprocessing.get_context("spawn")
-        self._proc: Any = None
+        self._proc: subprocess.Popen[bytes] | None = None
         self._conn: Connection | None = None
         self._alive = False
         self._send_lock = threading.Lock()
@@ -419,26 +437,30 @@ class RigSupervisor:
         return self
 
     def _spawn(self, after_crash: bool) -> None:
-        parent, child = self._ctx.Pipe(duplex=True)
-        proc = self._ctx.Process(
-            target=child_main,
-            args=(child, self.config, self.log_level, self.status_period_s, after_crash),
-            name="lrms-rig",
-            daemon=False,
+        # a process of its own started with ``-m`` (not multiprocessing's spawn, which would import
+        # the caller's main script again), its end of a socket pair passed as a file descriptor
+        ours, theirs = socket.socketpair()
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "service.rigproc", str(theirs.fileno())],
+            pass_fds=[theirs.fileno()],
+            stdin=subprocess.DEVNULL,
         )
-        proc.start()
-        child.close()  # else this process holds the child's end open and never sees it close
+        theirs.close()  # else this process holds the child's end open and never sees it close
+        parent = Connection(ours.detach())
+        first: object = None
         try:
+            parent.send(Boot(self.config, self.log_level, self.status_period_s, after_crash))
             first = parent.recv() if parent.poll(self.start_timeout_s) else None
         except (EOFError, OSError):
-            first = None
+            pass
         if not isinstance(first, Ready):
-            proc.join(10.0)
-            if proc.is_alive():
+            try:
+                proc.wait(10.0)
+            except subprocess.TimeoutExpired:
                 proc.kill()
-                proc.join(5.0)
+                proc.wait(5.0)
             parent.close()
-            why = first.reason if isinstance(first, StartupFailed) else _exit_text(proc.exitcode)
+            why = first.reason if isinstance(first, StartupFailed) else _exit_text(proc.returncode)
             raise RigProcessError(f"the rig process did not start: {why}")
         self.scanner_url = first.info.get("scanner_url")
         self.motor_url = first.info.get("motor_url")
@@ -455,11 +477,12 @@ class RigSupervisor:
             return
         with contextlib.suppress(OSError, ValueError):
             self._send(ShutdownCmd())
-        proc.join(40.0)
-        if proc.is_alive():
+        try:
+            proc.wait(40.0)
+        except subprocess.TimeoutExpired:
             log.error("the rig process did not stop in 40 s: killing it")
             proc.kill()
-            proc.join(5.0)
+            proc.wait(5.0)
         if self._thread is not None:
             self._thread.join(5.0)
         with contextlib.suppress(OSError):
@@ -489,9 +512,16 @@ class RigSupervisor:
             conn = self._conn
             assert conn is not None
             self._read(conn)
+            with contextlib.suppress(OSError):
+                conn.close()
             proc = self._proc
-            proc.join(10.0)
-            how = _exit_text(proc.exitcode)
+            assert proc is not None
+            try:
+                proc.wait(10.0)
+            except subprocess.TimeoutExpired:  # its pipe closed but it lives on: make sure it is gone
+                proc.kill()
+                proc.wait(5.0)
+            how = _exit_text(proc.returncode)
             with self._lock:
                 self._alive = False
                 self.last_exit = how
@@ -641,21 +671,8 @@ class RigSupervisor:
         else:
             if proc["state_age_s"] > max(5.0, 20 * self.status_period_s):
                 reasons.append(f"no state from the rig process for {proc['state_age_s']:.1f} s")
-            motor = st.info.get("motor", {})
-            drive = {"state": motor.get("state"), "fault": motor.get("fault")}
-            name = str(motor.get("state") or "UNKNOWN")
-            if motor.get("error"):
-                reasons.append(f"drive not readable: {motor['error']}")
-            elif "FAULT" in name:
-                fault = motor.get("fault") or {}
-                code = fault.get("code")
-                what = f"0x{code:04X}: {fault.get('reason')}" if isinstance(code, int) else "no fault code"
-                reasons.append(f"drive {name} ({what})")
-            elif name == "UNKNOWN":
-                reasons.append("drive state unknown (no sample from the drive)")
-            scanner_connected = st.info.get("scanner", {}).get("connected")
-            if scanner_connected is False:
-                reasons.append("scanner not connected")
+            device_reasons, drive, scanner_connected = device_health(st.info)
+            reasons += device_reasons
         return {
             "status": "degraded" if reasons else "ok",
             "reasons": reasons,
@@ -663,3 +680,11 @@ class RigSupervisor:
             "drive": drive,
             "scanner_connected": scanner_connected,
         }
+
+
+if __name__ == "__main__":
+    # run the imported module's main, not this ``__main__`` copy's: the messages it pickles must
+    # name their classes ``service.rigproc.*`` for the service to read them
+    from service.rigproc import main as _main
+
+    raise SystemExit(_main())
