@@ -191,6 +191,28 @@ def sweep_info(recorder: SweepRecorder, mapped: MappedSweep, sweep: ResolvedSwee
     }
 
 
+def _exit_with_parent() -> None:
+    """The fit worker's initializer: end the worker when the rig process ends, however it ends
+    (a worker of a killed process would otherwise wait for work for ever)."""
+    import multiprocessing
+    import multiprocessing.connection
+    import os
+
+    parent = multiprocessing.parent_process()
+    if parent is None:
+        return
+
+    def watch() -> None:
+        multiprocessing.connection.wait([parent.sentinel])
+        os._exit(0)
+
+    threading.Thread(target=watch, name="lrms-fit-parent-watch", daemon=True).start()
+
+
+def _warm_up_fits() -> None:
+    import service.fitting  # noqa: F401  (and with it lrms, numpy, scipy)
+
+
 def device_health(info: dict[str, Any]) -> tuple[list[str], dict[str, Any], bool | None]:
     """From :meth:`Rig.describe`'s output: what keeps the rig from measuring (a drive in FAULT or
     FAULT_REACTION_ACTIVE with its code, a drive not readable or without samples, a scanner not
@@ -217,8 +239,11 @@ def device_health(info: dict[str, Any]) -> tuple[list[str], dict[str, Any], bool
 class Rig:
     """Scanner + motor of one rig (see the module docstring)."""
 
-    def __init__(self, config: RigConfig) -> None:
+    def __init__(self, config: RigConfig, fit_process: bool = False) -> None:
         self.config = config
+        self.fit_process = fit_process
+        """Map and fit in a worker process of this one (the rig process does: see :meth:`_finish`)."""
+        self._fit_pool: Any = None
         self.sim: Any = None
         self.scanner: ScannerClient | None = None
         self.motor: Any = None
@@ -254,6 +279,8 @@ class Rig:
             self.scanner = open_scanner(self.scanner_url)
             self.motor = open_device("motor", self.motor_url)
             self._configure_scanner()
+            if self.fit_process:
+                self._start_fit_pool()
         except BaseException:
             self.close()
             raise
@@ -277,6 +304,9 @@ class Rig:
         sc.run()
 
     def close(self) -> None:
+        if self._fit_pool is not None:
+            self._fit_pool.shutdown(wait=False, cancel_futures=True)
+            self._fit_pool = None
         for name in ("scanner", "motor", "sim"):
             dev = getattr(self, name)
             if dev is not None:
@@ -354,6 +384,40 @@ class Rig:
         }
 
     # -- a measurement --------------------------------------------------------------------
+    def _finish(
+        self, recorder: SweepRecorder, req: MeasurementRequest, sweep: ResolvedSweep, t0: int, t1: int | None
+    ) -> tuple[MappedSweep, dict[str, Any]]:
+        """Mapping and fit (:func:`finish_measurement`). With ``fit_process`` in a worker process:
+        the fit's numpy/scipy code holds the interpreter lock for up to ~0.3 s at a time (measured:
+        docs/service.md), which would delay this process's heartbeat and SYNC threads; the worker
+        has an interpreter of its own. The recorder goes there pickled, without its log."""
+        if not self.fit_process:
+            return finish_measurement(recorder, self.config, req, sweep, t0, t1)
+        from concurrent.futures.process import BrokenProcessPool
+
+        if self._fit_pool is None:
+            self._start_fit_pool()
+        log_ = recorder.log
+        recorder.log = None  # the MCAP writer (a thread) stays here; the sweep no longer logs through it
+        try:
+            return self._fit_pool.submit(finish_measurement, recorder, self.config, req, sweep, t0, t1).result()  # type: ignore[no-any-return]
+        except BrokenProcessPool as exc:
+            self._fit_pool = None
+            raise ServiceError(f"the fit process died: {exc}") from None
+        finally:
+            recorder.log = log_
+
+    def _start_fit_pool(self) -> None:
+        """The fit worker: spawned (a fork of this threaded process could inherit held locks) and
+        warmed up (imports) at once, so the first measurement does not wait for it."""
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        self._fit_pool = ProcessPoolExecutor(
+            max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=_exit_with_parent
+        )
+        self._fit_pool.submit(_warm_up_fits)
+
     def measure(self, ctx: JobContext) -> dict[str, Any]:
         with self._lock:
             return self._measure(ctx)
@@ -438,7 +502,7 @@ class Rig:
             ctx.info["scans"] = {"received": recorder.gaps.received, "missing": recorder.gaps.missing}
             ctx.progress(0.86, "mapping")
             try:
-                mapped, result = finish_measurement(recorder, cfg, req, sweep, outcome.t_start_ns, outcome.t_end_ns)
+                mapped, result = self._finish(recorder, req, sweep, outcome.t_start_ns, outcome.t_end_ns)
             except (FitError, SweepError) as exc:
                 partial = getattr(exc, "partial_result", None)
                 if partial is not None:  # the sweep's counters, so a failed fit still says what was measured

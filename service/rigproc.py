@@ -6,11 +6,9 @@ child process (``python -m service.rigproc``, talking over a socket pair wrapped
 client's reader thread (scan ingest), the CANopen driver's SYNC and master-heartbeat thread, the
 sweep's motion thread and loop, and the raw MCAP writer all run there, so nothing the API
 process does (parsing a 40 MB request body, a flood of requests, a full garbage collection)
-holds their interpreter lock. Mapping and the fit run in the rig process too, after the sweep:
-the scanner has stopped streaming and the motor stands, so only the heartbeat (100 ms; the
-drive faults after 500 ms) still needs the interpreter, and the fit's numpy/scipy code gives it
-up at least every ``sys.getswitchinterval()`` (5 ms); a measurement never holds it for long the
-way ``json.loads`` of a large body does (measured: docs/service.md, "The rig process").
+holds their interpreter lock. Mapping and the fit run in a worker process of the rig process
+(:meth:`service.rig.Rig._finish`): they hold the interpreter lock for up to ~0.3 s at a time,
+and the drive's heartbeat watchdog allows 0.5 s (measured: docs/service.md, "The rig process").
 
 The interface is one duplex pipe of small pickled dataclasses:
 
@@ -325,7 +323,7 @@ def child_main(conn: Connection, config: RigConfig, log_level: str, status_perio
 
     outbox = _Outbox(conn)
     try:
-        rig = Rig(config).open()
+        rig = Rig(config, fit_process=True).open()
     except BaseException as exc:
         log.exception("the rig did not open")
         outbox.send(StartupFailed(f"{type(exc).__name__}: {exc}"))
