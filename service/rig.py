@@ -522,7 +522,7 @@ class Rig:
 
 
 def build_service(
-    config: RigConfig, open_rig: bool = True, *, isolate: bool = True, log_level: str = "info"
+    config: RigConfig, open_rig: bool = True, *, isolate: bool = True, log_level: str = "warning"
 ) -> tuple[Any, Any]:
     """The REST service for ``config`` with its rig (opened unless told otherwise).
 

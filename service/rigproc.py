@@ -400,7 +400,7 @@ class RigSupervisor:
         self,
         config: RigConfig,
         *,
-        log_level: str = "info",
+        log_level: str = "warning",
         status_period_s: float = 0.25,
         start_timeout_s: float = 120.0,
         restart_delays_s: tuple[float, ...] = (0.5, 1.0, 2.0, 5.0, 10.0, 30.0),

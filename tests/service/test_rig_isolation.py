@@ -57,6 +57,7 @@ def _served(sim: RigProcess, tmp_path: Path, extra_toml: str = "") -> tuple[Any,
 
 # -- large bodies and a flood during a sweep ---------------------------------------------------
 
+LRMS_SERVE = [sys.executable, "-m", "service.cli.main", "serve"]
 BIG_BODIES = 4
 BIG_MB = 40
 FLOOD_THREADS = 4
@@ -77,8 +78,7 @@ def test_large_bodies_and_a_request_flood_during_a_sweep_do_not_starve_the_rig(
     config.write_text(hil_config_text(sim_rig.urls, tmp_path))
     with (tmp_path / "serve.log").open("w") as err:
         proc = subprocess.Popen(
-            [sys.executable, "-m", "service.cli.main", "serve", "--config", str(config), "--port", "0"]
-            + ["--log-level", "warning"],
+            [*LRMS_SERVE, "--config", str(config), "--port", "0", "--log-level", "warning"],
             cwd=REPO,
             stdout=subprocess.PIPE,
             stderr=err,
