@@ -174,12 +174,21 @@ class SweepConfig(_Strict):
     step_deg: float = Field(default=1.0, gt=0.0, le=90.0)
     scans_per_step: int = Field(default=1, ge=1, le=1000)
     acceleration_deg_s2: float = Field(default=90.0, gt=0.0, le=100000.0)
+    max_duration_s: float = Field(default=600.0, gt=0.0, le=86400.0)
+    """Longest a sweep may run (approach, sweep, run-out): the rig process stops the motor and fails
+    the measurement past it (``exceeded max duration N s``)."""
 
     @model_validator(mode="after")
     def _range(self) -> SweepConfig:
         if self.stop_deg == self.start_deg:
             raise ValueError("sweep start_deg and stop_deg must differ")
         return self
+
+
+class JobsConfig(_Strict):
+    """The job queue: at most ``max_queued`` measurements wait (POST beyond it: 429; schedules skip)."""
+
+    max_queued: int = Field(default=20, ge=1, le=10000)
 
 
 class FitConfig(_Strict):
@@ -223,6 +232,7 @@ class RigConfig(_Strict):
     auth: AuthConfig = Field(default_factory=AuthConfig)
     api: ApiConfig = Field(default_factory=ApiConfig)
     sweep: SweepConfig = Field(default_factory=SweepConfig)
+    jobs: JobsConfig = Field(default_factory=JobsConfig)
     fit: FitConfig = Field(default_factory=FitConfig)
 
     @model_validator(mode="after")

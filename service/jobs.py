@@ -16,8 +16,10 @@ without touching the database.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +39,14 @@ log = logging.getLogger(__name__)
 
 class Cancelled(ServiceError):
     """The measurement was cancelled while it ran."""
+
+
+class QueueFull(ServiceError):
+    """``max_queued`` measurements already wait; ``retry_after_s`` estimates when one will have started."""
+
+    def __init__(self, message: str, retry_after_s: int) -> None:
+        super().__init__(message)
+        self.retry_after_s = retry_after_s
 
 
 class ProgressHub:
@@ -95,6 +105,17 @@ class Metrics:
         )
         self.scans = Counter("lrms_scans_received", "Scans received from the scanner", registry=self.registry)
         self.scans_missing = Counter("lrms_scans_missing", "Scans missing (scan counter gaps)", registry=self.registry)
+        self.schedule_skipped = Counter(
+            "lrms_schedule_runs_skipped",
+            "Due schedule runs not queued, by reason",
+            ["reason"],
+            registry=self.registry,
+        )
+        self.queue_rejected = Counter(
+            "lrms_measurements_rejected",
+            "Measurements refused because the queue was full (requests and schedule runs)",
+            registry=self.registry,
+        )
         self.http_requests = Counter(
             "lrms_http_requests", "HTTP requests", ["method", "route", "status"], registry=self.registry
         )
@@ -152,6 +173,8 @@ class JobRunner:
         hub: ProgressHub | None = None,
         metrics: Metrics | None = None,
         progress_interval_s: float = 0.25,
+        max_queued: int | None = None,
+        expected_duration_s: Callable[[MeasurementRequest], float] | None = None,
     ) -> None:
         self.store = store
         self.measure = measure
@@ -160,6 +183,12 @@ class JobRunner:
         self.hub = hub or ProgressHub()
         self.metrics = metrics or Metrics()
         self.progress_interval_s = progress_interval_s
+        self.max_queued = max_queued
+        self.expected_duration_s = expected_duration_s
+        self._durations: deque[float] = deque(maxlen=10)
+        self._running_since: float | None = None
+        self._running_request: MeasurementRequest | None = None
+        self._submit_lock = threading.Lock()
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._lock = threading.Lock()
@@ -223,8 +252,32 @@ class JobRunner:
     def running_id(self) -> str | None:
         return self._running_id
 
+    def retry_after_s(self) -> int:
+        """Seconds until the queue probably has room: what the running measurement probably still
+        needs (the mean wall time of the last ten, else ``expected_duration_s`` of its request,
+        else 60 s), at least 1."""
+        since, req = self._running_since, self._running_request
+        if since is None:
+            return 1
+        if self._durations:
+            expected = sum(self._durations) / len(self._durations)
+        elif self.expected_duration_s is not None and req is not None:
+            expected = self.expected_duration_s(req)
+        else:
+            expected = 60.0
+        return max(1, math.ceil(expected - (time.monotonic() - since)))
+
     def submit(self, request: MeasurementRequest, schedule_id: str | None = None) -> Measurement:
-        m = self.store.create_measurement(request.model_dump(mode="json"), schedule_id=schedule_id)
+        """Queue a measurement; :class:`QueueFull` when ``max_queued`` already wait."""
+        with self._submit_lock:  # the count and the insert together: concurrent posts cannot overfill
+            if self.max_queued is not None:
+                queued = self.store.count_by_state()["queued"]
+                if queued >= self.max_queued:
+                    self.metrics.queue_rejected.inc()
+                    raise QueueFull(
+                        f"the queue is full ({queued} of {self.max_queued} measurements waiting)", self.retry_after_s()
+                    )
+            m = self.store.create_measurement(request.model_dump(mode="json"), schedule_id=schedule_id)
         self.hub.publish(m)
         self.metrics.queued.set(len(self.store.queued()))
         self._wake.set()
@@ -277,6 +330,7 @@ class JobRunner:
         self.metrics.running.set(1)
         self.hub.publish(m)
         t_start = time.monotonic()
+        self._running_since = t_start
         last = [0.0]
 
         def report(fraction: float, message: str) -> None:
@@ -286,9 +340,11 @@ class JobRunner:
                 last[0] = now
                 self.store.set_progress(m.id, fraction, message)
 
+        request = MeasurementRequest.model_validate(m.request)
+        self._running_request = request
         ctx = JobContext(
             measurement=m,
-            request=MeasurementRequest.model_validate(m.request),
+            request=request,
             raw_path=self.raw_dir / f"{m.id}.mcap",
             cloud_path=self.cloud_dir / f"{m.id}.ply",
             cancel_event=self._cancel,
@@ -317,9 +373,12 @@ class JobRunner:
         finally:
             self.metrics.finished.labels(state).inc()
             self.metrics.duration.observe(time.monotonic() - t_start)
+            if state == "done":
+                self._durations.append(time.monotonic() - t_start)
             self.metrics.running.set(0)
             with self._lock:
                 self._running_id = None
+                self._running_since = self._running_request = None
 
     def _record_paths(self, ctx: JobContext) -> None:
         raw = str(ctx.raw_path) if ctx.raw_path.exists() else None

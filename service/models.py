@@ -6,6 +6,7 @@ that a misspelt option is a 422 with the field's name, not a silent default.
 
 from __future__ import annotations
 
+import math
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -104,6 +105,48 @@ def resolve_sweep(spec: SweepSpec, config: RigConfig) -> ResolvedSweep:
     if out.start_deg == out.stop_deg:
         raise ValueError("sweep start_deg and stop_deg must differ")
     return out
+
+
+#: Speed of the approach move to the sweep's run-up point (``service.sweep.SweepPlan.approach_speed``).
+APPROACH_SPEED_DEG_S = 30.0
+
+
+def _move_time_s(distance_deg: float, speed_deg_s: float, acceleration_deg_s2: float) -> float:
+    """A point-to-point move of a trapezoidal profile (a triangle when too short to reach speed)."""
+    d = abs(distance_deg)
+    if d == 0.0:
+        return 0.0
+    ramp = speed_deg_s * speed_deg_s / acceleration_deg_s2  # distance of the two ramps together
+    if d >= ramp:
+        return d / speed_deg_s + speed_deg_s / acceleration_deg_s2
+    return 2.0 * math.sqrt(d / acceleration_deg_s2)
+
+
+def planned_duration_s(sweep: ResolvedSweep, config: RigConfig, start_from_deg: float | None = None) -> float:
+    """Planned motion time of a sweep (s), to compare with ``[sweep] max_duration_s``.
+
+    Constant speed: the move from ``start - run_up`` to ``stop + run_up`` (``run_up = v^2 / 2a +
+    0.5 deg``, as :attr:`service.sweep.SweepPlan.run_up`). Step-and-scan: one move per step plus
+    the dwell of ``scans_per_step + 1`` scan periods and 50 ms at each stop (as
+    :func:`service.sweep.run_sweep`). The approach (at 30 deg/s) is included only when
+    ``start_from_deg`` (the beta the motor starts from) is given: the motor's position is known
+    at run time only. Scanner run-out, mapping and the fit are not included.
+    """
+    v, a = sweep.speed_deg_s, sweep.acceleration_deg_s2
+    direction = 1.0 if sweep.stop_deg > sweep.start_deg else -1.0
+    span = abs(sweep.stop_deg - sweep.start_deg)
+    if sweep.mode == "constant":
+        run_up = v * v / (2.0 * a) + 0.5
+        first = sweep.start_deg - direction * run_up
+        t = _move_time_s(span + 2.0 * run_up, v, a)
+    else:
+        first = sweep.start_deg
+        n = math.floor(span / sweep.step_deg + 1e-9) + 1
+        dwell = 0.05 + (sweep.scans_per_step + 1) / float(config.scanner.scan_frequency_hz)
+        t = (n - 1) * _move_time_s(sweep.step_deg, v, a) + n * dwell
+    if start_from_deg is not None:
+        t += _move_time_s(first - start_from_deg, APPROACH_SPEED_DEG_S, a)
+    return t
 
 
 class ScheduleRequest(_Strict):

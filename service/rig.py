@@ -214,11 +214,59 @@ def sweep_info(recorder: SweepRecorder, mapped: MappedSweep, sweep: ResolvedSwee
     }
 
 
+def _exit_with_parent() -> None:
+    """The fit worker's initializer: end the worker when the rig process ends, however it ends
+    (a worker of a killed process would otherwise wait for work for ever)."""
+    import multiprocessing
+    import multiprocessing.connection
+    import os
+
+    parent = multiprocessing.parent_process()
+    if parent is None:
+        return
+
+    def watch() -> None:
+        multiprocessing.connection.wait([parent.sentinel])
+        os._exit(0)
+
+    threading.Thread(target=watch, name="lrms-fit-parent-watch", daemon=True).start()
+
+
+def _warm_up_fits() -> None:
+    import service.fitting  # noqa: F401  (and with it lrms, numpy, scipy)
+
+
+def device_health(info: dict[str, Any]) -> tuple[list[str], dict[str, Any], bool | None]:
+    """From :meth:`Rig.describe`'s output: what keeps the rig from measuring (a drive in FAULT or
+    FAULT_REACTION_ACTIVE with its code, a drive not readable or without samples, a scanner not
+    connected), the drive's ``{"state", "fault"}`` and whether the scanner is connected."""
+    reasons: list[str] = []
+    motor = info.get("motor", {})
+    drive = {"state": motor.get("state"), "fault": motor.get("fault")}
+    name = str(motor.get("state") or "UNKNOWN")
+    if motor.get("error"):
+        reasons.append(f"drive not readable: {motor['error']}")
+    elif "FAULT" in name:
+        fault = motor.get("fault") or {}
+        code = fault.get("code")
+        what = f"0x{code:04X}: {fault.get('reason')}" if isinstance(code, int) else "no fault code"
+        reasons.append(f"drive {name} ({what})")
+    elif name == "UNKNOWN":
+        reasons.append("drive state unknown (no sample from the drive)")
+    connected = info.get("scanner", {}).get("connected")
+    if connected is False:
+        reasons.append("scanner not connected")
+    return reasons, drive, connected
+
+
 class Rig:
     """Scanner + motor of one rig (see the module docstring)."""
 
-    def __init__(self, config: RigConfig) -> None:
+    def __init__(self, config: RigConfig, fit_process: bool = False) -> None:
         self.config = config
+        self.fit_process = fit_process
+        """Map and fit in a worker process of this one (the rig process does: see :meth:`_finish`)."""
+        self._fit_pool: Any = None
         self.sim: Any = None
         self.scanner: ScannerClient | None = None
         self.motor: Any = None
@@ -254,6 +302,8 @@ class Rig:
             self.scanner = open_scanner(self.scanner_url)
             self.motor = open_device("motor", self.motor_url)
             self._configure_scanner()
+            if self.fit_process:
+                self._start_fit_pool()
         except BaseException:
             self.close()
             raise
@@ -277,6 +327,9 @@ class Rig:
         sc.run()
 
     def close(self) -> None:
+        if self._fit_pool is not None:
+            self._fit_pool.shutdown(wait=False, cancel_futures=True)
+            self._fit_pool = None
         for name in ("scanner", "motor", "sim"):
             dev = getattr(self, name)
             if dev is not None:
@@ -285,6 +338,21 @@ class Rig:
                 except Exception:  # closing is best effort; keep closing the others
                     log.exception("closing the %s failed", name)
                 setattr(self, name, None)
+
+    def reset(self) -> dict[str, Any]:
+        """Clear a drive fault (``POST /api/v1/rig/reset``): ``{"ok", "error", "motor"}``."""
+        if self.motor is None:
+            raise ServiceError("the rig is not open")
+        if not self._lock.acquire(blocking=False):
+            return {"ok": False, "error": "a measurement is running", "motor": self.describe(0.0).get("motor", {})}
+        try:
+            self.motor.reset_fault()
+            error = None
+        except Exception as exc:
+            error = f"{type(exc).__name__}: {exc}"
+        finally:
+            self._lock.release()
+        return {"ok": error is None, "error": error, "motor": self.describe(0.0).get("motor", {})}
 
     def __enter__(self) -> Rig:
         return self.open()
@@ -328,7 +396,51 @@ class Rig:
             out["sim"] = self.sim.describe()
         return out
 
+    def health(self) -> dict[str, Any]:
+        """``/healthz``'s rig part for a rig in this process (see :func:`device_health`)."""
+        reasons, drive, connected = device_health(self.describe())
+        return {
+            "status": "degraded" if reasons else "ok",
+            "reasons": reasons,
+            "drive": drive,
+            "scanner_connected": connected,
+        }
+
     # -- a measurement --------------------------------------------------------------------
+    def _finish(
+        self, recorder: SweepRecorder, req: MeasurementRequest, sweep: ResolvedSweep, t0: int, t1: int | None
+    ) -> tuple[MappedSweep, dict[str, Any]]:
+        """Mapping and fit (:func:`finish_measurement`). With ``fit_process`` in a worker process:
+        the fit's numpy/scipy code holds the interpreter lock for up to ~0.3 s at a time (measured:
+        docs/service.md), which would delay this process's heartbeat and SYNC threads; the worker
+        has an interpreter of its own. The recorder goes there pickled, without its log."""
+        if not self.fit_process:
+            return finish_measurement(recorder, self.config, req, sweep, t0, t1)
+        from concurrent.futures.process import BrokenProcessPool
+
+        if self._fit_pool is None:
+            self._start_fit_pool()
+        log_ = recorder.log
+        recorder.log = None  # the MCAP writer (a thread) stays here; the sweep no longer logs through it
+        try:
+            return self._fit_pool.submit(finish_measurement, recorder, self.config, req, sweep, t0, t1).result()  # type: ignore[no-any-return]
+        except BrokenProcessPool as exc:
+            self._fit_pool = None
+            raise ServiceError(f"the fit process died: {exc}") from None
+        finally:
+            recorder.log = log_
+
+    def _start_fit_pool(self) -> None:
+        """The fit worker: spawned (a fork of this threaded process could inherit held locks) and
+        warmed up (imports) at once, so the first measurement does not wait for it."""
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        self._fit_pool = ProcessPoolExecutor(
+            max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=_exit_with_parent
+        )
+        self._fit_pool.submit(_warm_up_fits)
+
     def measure(self, ctx: JobContext) -> dict[str, Any]:
         with self._lock:
             return self._measure(ctx)
@@ -398,8 +510,10 @@ class Rig:
                     progress=ctx.progress,
                     cancelled=lambda: ctx.cancelled,
                     on_event=on_event,
+                    max_duration_s=cfg.sweep.max_duration_s,
                 )
             except BaseException as exc:
+                ctx.info["scans"] = {"received": recorder.gaps.received, "missing": recorder.gaps.missing}
                 state = "cancelled" if isinstance(exc, Cancelled) else "failed"
                 logf.log_json(
                     mcaplog.TOPIC_RESULT, now_ns(), {"state": state, "reason": str(exc) or type(exc).__name__}
@@ -409,9 +523,10 @@ class Rig:
                 raise
             if metrics is not None:
                 metrics.scans_missing.inc(recorder.gaps.missing)
+            ctx.info["scans"] = {"received": recorder.gaps.received, "missing": recorder.gaps.missing}
             ctx.progress(0.86, "mapping")
             try:
-                mapped, result = finish_measurement(recorder, cfg, req, sweep, outcome.t_start_ns, outcome.t_end_ns)
+                mapped, result = self._finish(recorder, req, sweep, outcome.t_start_ns, outcome.t_end_ns)
             except (FitError, SweepError) as exc:
                 partial = getattr(exc, "partial_result", None)
                 if partial is not None:  # the sweep's counters, so a failed fit still says what was measured
@@ -430,12 +545,27 @@ class Rig:
         return mcaplog.json_safe(result)  # type: ignore[no-any-return]
 
 
-def build_service(config: RigConfig, open_rig: bool = True) -> tuple[Any, Rig]:
-    """The REST service for ``config`` with its rig (opened unless told otherwise)."""
+def build_service(
+    config: RigConfig, open_rig: bool = True, *, isolate: bool = True, log_level: str = "warning"
+) -> tuple[Any, Any]:
+    """The REST service for ``config`` with its rig (opened unless told otherwise).
+
+    ``isolate`` (the default, and what ``lrms serve`` and ``lrms measure`` use): the rig runs in
+    its own process (:class:`service.rigproc.RigSupervisor`), and the service gets its
+    measurement function, device state, health and drive reset from there. ``isolate=False``
+    keeps a :class:`Rig` in this process (library use; no isolation from request handling).
+    """
     from service.api import Service
 
+    if isolate:
+        from service.rigproc import RigSupervisor
+
+        sup = RigSupervisor(config, log_level=log_level)
+        if open_rig:
+            sup.open()
+        svc = Service(config, sup.measure, rig_info=sup.describe, rig_health=sup.health, rig_reset=sup.reset)
+        return svc, sup
     rig = Rig(config)
     if open_rig:
         rig.open()
-    svc = Service(config, rig.measure, rig_info=rig.describe)
-    return svc, rig
+    return Service(config, rig.measure, rig_info=rig.describe, rig_health=rig.health, rig_reset=rig.reset), rig

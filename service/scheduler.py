@@ -3,7 +3,10 @@
 Each schedule holds a measurement template. A scheduler thread wakes at the earliest due time
 (at least once a second), queues one measurement per due schedule through the job runner and
 computes the next due time from *now*: runs missed while the service was down are not replayed
-one by one; a schedule that came due during the outage runs once at start-up.
+one by one; a schedule that came due during the outage runs once at start-up. A run that comes
+due while the job queue is full (``[jobs] max_queued``) is skipped, not piled up: logged with
+the reason, counted (``lrms_schedule_runs_skipped_total{reason="queue_full"}``), and the
+schedule's ``last_run`` moves on with ``last_measurement_id`` null.
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ from datetime import UTC, datetime
 
 from croniter import croniter
 
-from service.jobs import JobRunner
+from service.jobs import JobRunner, QueueFull
 from service.models import MeasurementRequest, ScheduleRequest
 from service.store import Schedule, Store
 
@@ -40,6 +43,7 @@ class Scheduler:
         self._wake = threading.Event()
         self._thread: threading.Thread | None = None
         self.fired = 0
+        self.skipped = 0
 
     def add(self, req: ScheduleRequest) -> Schedule:
         now = time.time()
@@ -80,6 +84,10 @@ class Scheduler:
                     m = self.runner.submit(MeasurementRequest.model_validate(s.template), schedule_id=s.id)
                     mid = m.id
                     self.fired += 1
+                except QueueFull as exc:
+                    self.skipped += 1
+                    self.runner.metrics.schedule_skipped.labels("queue_full").inc()
+                    log.warning("schedule %s (%s): run skipped: %s", s.id, s.name, exc)
                 except Exception:  # a bad stored template must not stop the other schedules
                     log.exception("schedule %s could not queue its measurement", s.id)
                 due = next_run(s.cron, s.interval_s, t)

@@ -463,6 +463,7 @@ def run_sweep(
     on_event: Callable[[str, dict[str, Any]], None] | None = None,
     scan_silence_s: float = 3.0,
     motion_timeout_s: float | None = None,
+    max_duration_s: float | None = None,
 ) -> SweepOutcome:
     """Run one sweep: approach, then sweep (constant speed or step-and-scan), recording all along.
 
@@ -471,7 +472,8 @@ def run_sweep(
     plus a fixed offset: motor sample batches are converted with ``clock_ns(0.0)`` as that offset).
     The motor runs on its own thread; this loop reads scans, watches for faults, cancellation
     and scanner silence. On *any* error the motor is stopped (quick stop) before the error is
-    raised; the caller records the reason.
+    raised; the caller records the reason. A sweep still running ``max_duration_s`` after it began
+    (approach included) fails with ``exceeded max duration N s`` (checked at least every 0.1 s).
     """
     from drivers.errors import DeviceTimeoutError
 
@@ -570,6 +572,8 @@ def run_sweep(
                 from service.jobs import Cancelled
 
                 raise Cancelled("cancelled by request")
+            if max_duration_s is not None and time.monotonic() - t_begin > max_duration_s:
+                raise SweepError(f"exceeded max duration {max_duration_s:g} s")
             try:
                 scan, t_host, raw = read_scan(0.1)
             except DeviceTimeoutError:

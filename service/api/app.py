@@ -28,7 +28,7 @@ from service.api.docs import mount_docs
 from service.api.guard import BodyGuard
 from service.api.routes import measurements, ops, rig, schedules
 from service.errors import ServiceError
-from service.jobs import Metrics
+from service.jobs import Metrics, QueueFull
 from service.store import NotFound, StoreError
 
 __all__ = ["Service", "create_app"]
@@ -90,6 +90,12 @@ def create_app(service: Service, manage_lifecycle: bool = True) -> FastAPI:
     @app.exception_handler(StoreError)
     async def _conflict(request: Request, exc: StoreError) -> JSONResponse:
         return JSONResponse(status_code=409, content={"detail": str(exc)})
+
+    @app.exception_handler(QueueFull)
+    async def _queue_full(request: Request, exc: QueueFull) -> JSONResponse:
+        return JSONResponse(
+            status_code=429, content={"detail": str(exc)}, headers={"Retry-After": str(exc.retry_after_s)}
+        )
 
     @app.exception_handler(ServiceError)
     async def _bad(request: Request, exc: ServiceError) -> JSONResponse:

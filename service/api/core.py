@@ -14,7 +14,7 @@ from fastapi import Response
 
 from service.config import RigConfig
 from service.jobs import JobRunner, MeasureFn, Metrics, ProgressHub
-from service.models import MeasurementRequest
+from service.models import MeasurementRequest, planned_duration_s, resolve_sweep
 from service.scheduler import Scheduler
 from service.store import Store
 
@@ -76,16 +76,29 @@ class Service:
         rig_info: RigInfo | None = None,
         store: Store | None = None,
         validate: Callable[[MeasurementRequest], None] | None = None,
+        rig_health: RigInfo | None = None,
+        rig_reset: RigInfo | None = None,
     ) -> None:
         self.config = config
         self.store = store or Store(config.storage.db_path)
         self.metrics = Metrics()
         self.hub = ProgressHub()
         self.runner = JobRunner(
-            self.store, measure, config.storage.raw_dir, config.storage.cloud_dir, self.hub, self.metrics
+            self.store,
+            measure,
+            config.storage.raw_dir,
+            config.storage.cloud_dir,
+            self.hub,
+            self.metrics,
+            max_queued=config.jobs.max_queued,
+            expected_duration_s=lambda req: expected_duration_s(req, config),
         )
         self.scheduler = Scheduler(self.store, self.runner)
         self.rig_info = rig_info or (lambda: {})
+        self.rig_health = rig_health
+        """``/healthz``'s rig part (``status``, ``reasons``, rig process, drive); None: no rig to check."""
+        self.rig_reset = rig_reset
+        """Clear a drive fault (``POST /api/v1/rig/reset``); None: not available."""
         self.validate = validate
         self.cache = ResponseCache(self.store)
         self.rig_live = RigLive()
@@ -111,6 +124,15 @@ class Service:
     def write_enabled(self) -> bool:
         """Whether any token may write (an operator or an admin token is configured)."""
         return self.token() is not None or self.config.role_token("admin") is not None
+
+
+def expected_duration_s(req: MeasurementRequest, config: RigConfig) -> float:
+    """A guess of a measurement's wall time before any has finished: its planned sweep plus 10 s
+    (approach, run-out, mapping and fit)."""
+    try:
+        return planned_duration_s(resolve_sweep(req.sweep, config), config) + 10.0
+    except ValueError:
+        return 60.0
 
 
 def _settle_heap() -> None:

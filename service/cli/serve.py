@@ -119,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
     for warning in exposure_warnings(args.host, cfg, tls is not None):
         print(f"{WARNING} {warning}", file=sys.stderr, flush=True)
         logging.getLogger("lrms.serve").warning("%s", warning)
-    svc, rig = build_service(cfg)
+    svc, rig = build_service(cfg, log_level=args.log_level)  # the rig in its own process (service.rigproc)
 
     def terminated(signum: int, frame: object) -> None:
         # uvicorn shuts down gracefully on SIGTERM, then raises the signal again with the handler

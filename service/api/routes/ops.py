@@ -7,6 +7,7 @@ running measurement's id and the queue length). ``/metrics`` needs a read token 
 from __future__ import annotations
 
 import json
+from typing import Any
 
 from fastapi import APIRouter, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
@@ -18,20 +19,28 @@ from service.api.deps import READ, READ_RESPONSES, ServiceDep
 router = APIRouter(tags=["ops"])
 
 
-@router.get("/healthz", response_class=JsonBytes)
+@router.get(
+    "/healthz",
+    response_class=JsonBytes,
+    responses={503: {"description": "degraded: the rig cannot measure now (the reasons are in the body)"}},
+)
 async def healthz(service: ServiceDep) -> Response:
-    def build() -> bytes:
-        body = {
-            "status": "ok",
-            "version": __version__,
-            "running": service.runner.running_id,
-            "queued": service.store.count_by_state()["queued"],
-        }
-        return json.dumps(body).encode()
-
-    # the runner changes running_id next to a store write (start, finish), so the store's
-    # version covers it; the key holds it too for the instant between the two
-    return JsonBytes(service.cache.get(f"healthz:{service.runner.running_id}", build))
+    """``status`` ``ok`` (200) only when the rig process is alive and reporting, the drive is not
+    faulted and the scanner is connected; else ``degraded`` (503) with ``reasons``. The API itself
+    answers either way: a probe reads the status code as "can this rig measure now"."""
+    # the queue count from the response cache (a store query only after a write); the rig part
+    # fresh: it is the rig supervisor's newest report, read without a device or bus access
+    queued = int(service.cache.get("healthz:queued", lambda: str(service.store.count_by_state()["queued"]).encode()))
+    body: dict[str, Any] = {
+        "status": "ok",
+        "version": __version__,
+        "running": service.runner.running_id,
+        "queued": queued,
+    }
+    if service.rig_health is not None:
+        body.update(service.rig_health())
+    code = 200 if body["status"] == "ok" else 503
+    return JsonBytes(json.dumps(body).encode(), status_code=code)
 
 
 @router.get("/metrics", response_class=Response, dependencies=READ, responses=READ_RESPONSES)

@@ -6,12 +6,12 @@ import json
 import time
 from typing import Any
 
-from fastapi import APIRouter, Response
+from fastapi import APIRouter, HTTPException, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.encoders import jsonable_encoder
 
 from service.api.core import JsonBytes, Service
-from service.api.deps import READ, READ_RESPONSES, ServiceDep
+from service.api.deps import OPERATE, READ, READ_RESPONSES, WRITE_RESPONSES, ServiceDep
 
 router = APIRouter(tags=["rig"], dependencies=READ, responses=READ_RESPONSES)
 
@@ -51,3 +51,20 @@ async def rig(service: ServiceDep) -> Response:
         **live.info,
     }
     return JsonBytes(json.dumps(jsonable_encoder(info)).encode())
+
+
+@router.post(
+    "/rig/reset",
+    dependencies=OPERATE,
+    responses={**WRITE_RESPONSES, 409: {"description": "the reset was refused or failed"}},
+)
+def reset(service: ServiceDep) -> dict[str, Any]:
+    """Clear a drive fault (CiA 402 fault reset) in the rig process: ``{"ok", "error", "motor"}``.
+    409 while a measurement runs, or when the drive refuses the reset."""
+    if service.rig_reset is None:
+        raise HTTPException(404, "this service has no rig to reset")
+    out = service.rig_reset()
+    if not out["ok"]:
+        raise HTTPException(409, f"drive reset failed: {out['error']}")
+    service.rig_live.read_at = -1e9  # GET /rig reads the new state
+    return out
