@@ -11,9 +11,9 @@ Numeric fields keep the device's units (1/100 Hz, 1/10000 deg); properties give 
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from collections.abc import Callable
-import dataclasses
 from dataclasses import dataclass, fields
 from enum import IntEnum
 from typing import Any, ClassVar, TypeVar, dataclass_transform
