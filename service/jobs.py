@@ -363,13 +363,12 @@ class JobRunner:
             state = "cancelled"
             self.hub.publish(self.store.cancel(m.id, str(exc)))
         except (ServiceError, DriverError, LrmsError) as exc:
-            self._record_paths(ctx)
-            reason = str(exc) or type(exc).__name__
+            reason = (str(exc) or type(exc).__name__) + self._record_paths(ctx)
             self.hub.publish(self.store.fail(m.id, reason, ctx.info.get("partial_result")))
         except Exception as exc:  # a bug: keep the traceback in the log, the reason in the store
             log.exception("measurement %s crashed", m.id)
-            self._record_paths(ctx)
-            self.hub.publish(self.store.fail(m.id, f"internal error: {type(exc).__name__}: {exc}"))
+            reason = f"internal error: {type(exc).__name__}: {exc}" + self._record_paths(ctx)
+            self.hub.publish(self.store.fail(m.id, reason))
         finally:
             self.metrics.finished.labels(state).inc()
             self.metrics.duration.observe(time.monotonic() - t_start)
@@ -380,8 +379,24 @@ class JobRunner:
                 self._running_id = None
                 self._running_since = self._running_request = None
 
-    def _record_paths(self, ctx: JobContext) -> None:
+    def _record_paths(self, ctx: JobContext) -> str:
+        """Store where the raw log and the cloud are. A raw log without its summary (the process
+        that wrote it died: the rig process, or its fit worker) is rebuilt into a complete one
+        first and served as truncated; the text returned then says so, for the failure reason."""
         raw = str(ctx.raw_path) if ctx.raw_path.exists() else None
         cloud = str(ctx.cloud_path) if ctx.cloud_path.exists() else None
+        note, truncated = "", False
+        if raw is not None and not mcaprecovery.has_summary(raw):
+            try:
+                rec = mcaprecovery.recover_log(raw)
+            except (OSError, ServiceError) as exc:
+                log.error("measurement %s: its raw log %s could not be recovered: %s", ctx.measurement.id, raw, exc)
+                note = f"; its raw log could not be recovered: {exc}"
+            else:
+                truncated = rec.truncated
+                note = f"; {rec.describe()}" if rec.truncated else ""
+                if not rec.messages:
+                    raw = None
         if raw or cloud:
-            self.store.set_paths(ctx.measurement.id, raw_path=raw, cloud_path=cloud)
+            self.store.set_paths(ctx.measurement.id, raw_path=raw, cloud_path=cloud, raw_truncated=truncated)
+        return note

@@ -235,10 +235,15 @@ class Store:
                 (min(max(float(progress), 0.0), 1.0), message, mid),
             )
 
-    def set_paths(self, mid: str, raw_path: str | None = None, cloud_path: str | None = None) -> None:
+    def set_paths(
+        self, mid: str, raw_path: str | None = None, cloud_path: str | None = None, raw_truncated: bool = False
+    ) -> None:
         with self._tx() as db:
             if raw_path is not None:
-                db.execute("UPDATE measurements SET raw_path = ? WHERE id = ?", (raw_path, mid))
+                db.execute(
+                    "UPDATE measurements SET raw_path = ?, raw_truncated = ? WHERE id = ?",
+                    (raw_path, int(raw_truncated), mid),
+                )
             if cloud_path is not None:
                 db.execute("UPDATE measurements SET cloud_path = ? WHERE id = ?", (cloud_path, mid))
 

@@ -1,7 +1,10 @@
 """``lrms serve`` killed with SIGKILL mid-sweep and started again on the same data folder.
 
 The real thing, nothing simulated but the rig: ``lrms serve`` (its own process, on the default
-simulated rig, which runs in a child process of the service) is killed while a sweep runs. Then:
+simulated rig; the rig process and the simulated rig run in child processes) is killed while a
+sweep runs. Killed alone, the API process leaves the rig process to stop the sweep and close the
+raw log (:func:`test_killed_api_process_leaves_a_closed_raw_log`). Killed together with the rig
+process (power loss), the log is cut short. Then:
 
 * the rig's child process does not outlive the service (it ends when its stdin closes);
 * the raw log on disk has no summary (indexed readers refuse it);
@@ -41,7 +44,7 @@ SECRETS = (TOKEN, str(PASSWORD_HASH), f"{PASSWORD_HASH:08X}", f"{PASSWORD_HASH:0
 
 def _config(tmp_path: Path) -> Path:
     text = (REPO / "service" / "default_rig.toml").read_text()
-    text = text.replace('token = ""', f'token = "{TOKEN}"')
+    text = text.replace('operator_token = ""', f'operator_token = "{TOKEN}"')
     text = text.replace("resolution_deg = 0.25\n", f"resolution_deg = 0.25\nlogin_password_hash = {PASSWORD_HASH}\n")
     text = text.replace('dir = "lrms-data"', f'dir = "{tmp_path / "data"}"')
     assert TOKEN in text and str(PASSWORD_HASH) in text
@@ -85,10 +88,14 @@ def test_killed_service_leaves_a_recoverable_raw_log_served_as_truncated(tmp_pat
         with httpx.Client(base_url=url, timeout=30) as client:
             rig = client.get("/api/v1/rig").json()
             sim_pid = int(rig["sim"]["pid"])
-            assert _alive(sim_pid) and not any(s in str(rig) for s in SECRETS)
+            rig_pid = int(client.get("/healthz").json()["rig_process"]["pid"])
+            assert _alive(sim_pid) and _alive(rig_pid) and not any(s in str(rig) for s in SECRETS)
             mid = client.post("/api/v1/measurements", json={"target": "cylinder"}, headers=auth).json()["id"]
             _wait_sweeping(client, mid, 20.0)  # 4 s into the sweep: several chunks closed
             killed_at_ns = time.time_ns()
+            # the whole service dies at once (power loss, OOM killer): the API process and the rig
+            # process that writes the raw log, so nothing is left to close the log
+            os.kill(rig_pid, signal.SIGKILL)
             os.kill(proc.pid, signal.SIGKILL)
             proc.wait(10)
     finally:
@@ -156,3 +163,46 @@ def test_killed_service_leaves_a_recoverable_raw_log_served_as_truncated(tmp_pat
     out = replay(got)
     assert out["truncated"] is True and out["recovered"]["messages"] == str(n) and out["stored"] is None
     assert out["result"]["sweep"]["scans_received"] == telegrams
+
+
+def test_killed_api_process_leaves_a_closed_raw_log(tmp_path: Path) -> None:
+    """Only the API process dies: the rig process sees its command socket close, stops the sweep
+    and closes the raw log (summary and all), then exits with the simulated rig. After the restart
+    the measurement is failed as interrupted, with its complete log (not truncated)."""
+    config = _config(tmp_path)
+    stderr = tmp_path / "serve.stderr"
+    auth = {"Authorization": f"Bearer {TOKEN}"}
+    proc, url = _serve(config, stderr)
+    try:
+        with httpx.Client(base_url=url, timeout=30) as client:
+            sim_pid = int(client.get("/api/v1/rig").json()["sim"]["pid"])
+            rig_pid = int(client.get("/healthz").json()["rig_process"]["pid"])
+            mid = client.post("/api/v1/measurements", json={"target": "cylinder"}, headers=auth).json()["id"]
+            _wait_sweeping(client, mid, 10.0)
+            os.kill(proc.pid, signal.SIGKILL)
+            proc.wait(10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+    end = time.monotonic() + 30
+    while (_alive(rig_pid) or _alive(sim_pid)) and time.monotonic() < end:
+        time.sleep(0.1)
+    assert not _alive(rig_pid) and not _alive(sim_pid), "the rig process or the simulated rig outlived the service"
+    raw = tmp_path / "data" / "raw" / f"{mid}.mcap"
+    assert mcaprecovery.has_summary(raw)  # closed by the rig process
+    msgs, status = mcaplog.read_log(raw)
+    assert not status.truncated
+    results = [m.decode() for m in msgs if m.topic == mcaplog.TOPIC_RESULT]
+    assert len(results) == 1 and results[0]["state"] in {"cancelled", "failed"}, results
+
+    proc, url = _serve(config, stderr)
+    try:
+        with httpx.Client(base_url=url, timeout=30) as client:
+            body = _wait(client, mid, {"failed"}, timeout=30)
+            assert body["has_raw"] is True and body["raw_truncated"] is False, body
+            assert "process died" in body["error"] and "truncated" not in body["error"], body["error"]
+            assert client.get(f"/api/v1/measurements/{mid}/raw").content == raw.read_bytes()
+    finally:
+        proc.terminate()
+        proc.wait(30)

@@ -28,7 +28,7 @@ from typing import Any
 import httpx
 import pytest
 
-from service import mcaplog
+from service import mcaplog, mcaprecovery
 from service.api import ServerThread, Service, create_app
 from service.config import TOKEN_ENV, parse_toml
 from service.models import MeasurementRequest, planned_duration_s, resolve_sweep
@@ -193,12 +193,14 @@ def test_rig_process_killed_mid_sweep_fails_the_measurement_and_is_restarted(
             # the drive stops: the dead process's heartbeat is missed (life guard), the motor comes to rest
             drive = sim_rig.wait_motor_at_rest()
             assert drive["velocity_actual"] == 0, drive
-            # the raw log is kept and readable up to the last complete chunk
-            assert body["has_raw"]
+            # the raw log is kept up to the last complete chunk, rebuilt into an indexed file
+            assert body["has_raw"] and body["raw_truncated"], body
+            assert "raw log is truncated at" in body["error"], body["error"]
             raw = tmp_path / "killed.mcap"
             raw.write_bytes(client.get(f"/api/v1/measurements/{mid}/raw").content)
+            assert mcaprecovery.has_summary(raw)
             msgs, status = mcaplog.read_log(raw)
-            assert status.truncated and sum(m.topic == mcaplog.TOPIC_TELEGRAM for m in msgs) > 10
+            assert not status.truncated and sum(m.topic == mcaplog.TOPIC_TELEGRAM for m in msgs) > 10
             # restarted; /healthz is truthful about the restart and about the drive
             end = time.monotonic() + 60
             health = client.get("/healthz")
