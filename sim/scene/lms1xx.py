@@ -10,7 +10,7 @@ gives two pulses), and each echo gets the energy of its sub-rays (profile weight
 ``edge_threshold`` (a partly hit spot returns less energy: manual 3.6.3) and its energy the
 sensitivity limit (18 m at 10 % remission: LMS1xx data sheets). The reported range is the
 energy-weighted range of the echo's sub-rays (mixed pixels: "the output follows the energy
-distribution", manual 3.6.3) or its first sub-ray (``range_mode``), plus range systematics and
+distribution", manual 3.6.3) or its leading edge (``range_mode``), plus range systematics and
 noise. Up to two echoes per beam are kept (DIST1/DIST2 with RSSI1/RSSI2, manual 3.8.4).
 
 Everything is vectorized: beams are processed in chunks of ``chunk_rays`` sub-rays, the sub-ray
@@ -188,7 +188,9 @@ class LMS1xxSensor:
     publish it; 0.3 is our middle guess, the benches vary 0.1..0.5); ``min_energy``: the weakest
     detectable echo (remission x cos / range^2 summed over the spot: 18 m at 10 %);
     ``range_mode``: "weighted" (energy-weighted range over the echo's sub-rays: mixed pixels) or
-    "first" (its nearest sub-ray); ``echo_separation_m``: sub-ray ranges further apart than this
+    "first" (first hit: the range at which the echo's accumulated share of the spot, sub-rays in
+    range order, reaches ``edge_threshold``: the leading edge seen by a threshold discriminator;
+    its nearest sub-ray for a threshold of 0); ``echo_separation_m``: sub-ray ranges further apart than this
     form separate echoes (our estimate of the pulse-pair resolution; SICK publishes none);
     ``echo_filter``: DIST1 carries the "first" or the "last" echo (SICK's FREchoFilter 0 / 2);
     DIST2 the second echo (filter "first") or the first (filter "last") when there are two.
@@ -293,7 +295,7 @@ class LMS1xxSensor:
             raise SceneError(f"sub-ray hits have {k} sub-rays per beam, the footprint {self.footprint.sub_rays}")
         times = None if time_s is None else np.broadcast_to(np.asarray(time_s, dtype=np.float64), (n,))
         _, _, w = self.footprint.pattern()
-        c = _clusters(hits, w, self.echo_separation_m, self.range_min)
+        c = _clusters(hits, w, self.echo_separation_m, self.range_min, self.edge_threshold)
         r_echo = c.first_range if self.range_mode == "first" else c.weighted_range
         det = (
             (c.weight > 0)
@@ -388,7 +390,7 @@ class _Clusters:
     weight: FloatArray  # share of the spot's profile
     energy: FloatArray  # sum of weight * remission * cos / range^2
     weighted_range: FloatArray  # energy-weighted mean range
-    first_range: FloatArray  # nearest sub-ray
+    first_range: FloatArray  # leading edge: where the accumulated weight reaches the threshold
     spread: FloatArray  # energy-weighted std of the sub-ray ranges
     cos: FloatArray  # weight-weighted mean |cos incidence|
     remission: FloatArray  # weight-weighted mean remission
@@ -396,8 +398,12 @@ class _Clusters:
     index: NDArray[np.intp]  # the object that returned most of the echo's energy
 
 
-def _clusters(hits: SubRayHits, w: FloatArray, separation: float, range_min: float) -> _Clusters:
-    """Group each beam's sub-rays into echoes: sorted by range, a gap > ``separation`` splits."""
+def _clusters(hits: SubRayHits, w: FloatArray, separation: float, range_min: float, threshold: float) -> _Clusters:
+    """Group each beam's sub-rays into echoes: sorted by range, a gap > ``separation`` splits.
+
+    ``first_range``: where the echo's accumulated profile weight (sub-rays in range order) reaches
+    ``threshold`` (its first sub-ray for 0): the leading edge seen by a threshold discriminator.
+    """
     n, k = hits.range.shape
     order = np.argsort(hits.range, axis=1, kind="stable")
     ts = np.take_along_axis(hits.range, order, axis=1)
@@ -427,9 +433,16 @@ def _clusters(hits: SubRayHits, w: FloatArray, separation: float, range_min: flo
     w_safe = np.where(weight > 0, weight, 1.0)
     mean = er / e_safe
     spread = np.sqrt(np.maximum(er2 / e_safe - mean * mean, 0.0))
+    cum = np.cumsum(ws, axis=1)
+    before = (cum - ws).ravel()  # accumulated weight before each sub-ray, from the row's start
+    start_cum = np.zeros(size)
+    starts = (new | (np.arange(k) == 0)[None, :]).ravel()
+    start_cum[flat[starts]] = before[starts]
+    inside = cum.ravel() - start_cum[flat]  # accumulated weight within the sub-ray's echo
+    level = max(threshold, 1e-12) * (1 - 1e-12)
+    crossing = hit.ravel() & (inside >= level) & (inside - ws.ravel() < level)
     first = np.full(size, np.inf)
-    start = (new | (np.arange(k) == 0)[None, :]).ravel() & hit.ravel()
-    first[flat[start]] = ts.ravel()[start]
+    first[flat[crossing]] = ts.ravel()[crossing]
     objects = int(idx.max()) + 1 if idx.size else 0
     per_object = np.bincount(
         flat * (objects + 1) + (idx.ravel() + 1), weights=es.ravel(), minlength=size * (objects + 1)
