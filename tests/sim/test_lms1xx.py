@@ -103,6 +103,9 @@ def test_depth_step_inside_the_spot_mixed_pixel_and_first_hit() -> None:
     assert e.index[0] == 1  # the far half (white, 0.7) returns more energy than the near one (0.35)
     first = dataclasses.replace(sensor, range_mode="first").echoes(scene, ORIGIN, AHEAD, None)
     assert first.range[0] == pytest.approx(r1, abs=5e-4)
+    # The leading edge crosses a 60 % threshold only once the far half has come in: the far range.
+    late = dataclasses.replace(sensor, range_mode="first", edge_threshold=0.6).echoes(scene, ORIGIN, AHEAD, None)
+    assert late.valid[0] and late.range[0] == pytest.approx(r2, abs=5e-4)
 
 
 def test_deep_step_gives_two_echoes_first_and_last() -> None:
