@@ -75,7 +75,7 @@ def main() -> None:
     thin = 0.0
     for name, fn, n in cases:
         rate = _rate(fn, n)
-        if name.endswith("sensor noise"):
+        if name.endswith(("sensor noise", "thin beam")):
             thin = rate
         slower = f"  ({thin / rate:5.1f} x slower than the thin beam)" if "LMS1xx" in name and thin else ""
         print(f"{name:45s} {rate:12,.0f} beams/s = {rate / SENSOR_BEAMS_PER_S:7.1f} x real time{slower}")
