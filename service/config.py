@@ -205,6 +205,9 @@ class SimConfig(_Strict):
     """The embedded simulated rig: scene, real-time factor, CAN transport, fault injection."""
 
     scene: str = "seed003"
+    sensor: Literal["ideal", "lms1xx"] = "ideal"
+    """The simulated scanner's sensor model: "ideal" (thin beam, the [noise] figures) or "lms1xx"
+    (beam footprint, echoes, RSSI; docs/sensor-model.md; takes only the angle noise from [noise])."""
     seed: int = Field(default=0, ge=0)
     cola: Literal["a", "b"] = "b"
     can: Literal["socketcand", "virtual"] = "socketcand"

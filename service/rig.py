@@ -62,6 +62,8 @@ class SimProcess:
             "sim.rig",
             "--scene",
             sim.scene,
+            "--sensor",
+            sim.sensor,
             "--seed",
             str(sim.seed),
             "--cola",
@@ -285,9 +287,9 @@ class Rig:
                 self.scanner_url, self.motor_url = self.sim.scanner_url, self.sim.motor_url
             elif cfg.sim is not None:
                 from sim.rig import SimulatedRig
-                from sim.scene import SensorModel
+                from sim.scene import make_sensor
 
-                sensor = SensorModel(**cfg.noise.si())
+                sensor = make_sensor(cfg.sim.sensor, **cfg.noise.si())
                 self.sim = SimulatedRig(
                     cfg.sim.scene,
                     cfg.calibration,

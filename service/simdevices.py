@@ -29,15 +29,17 @@ from drivers.url import DeviceURL
 from lrms.errors import LrmsError
 from sim.drive.can_node import SimCanNode
 from sim.scanner import ScannerServer, SimulatedLMS100
+from sim.scene import SENSOR_NAMES, make_sensor
 
-_SIM_URL_OPTIONS = ("cola", "scene", "realtime", "time_scale", "seed")
+_SIM_URL_OPTIONS = ("cola", "scene", "realtime", "time_scale", "seed", "sensor")
 
 
 def open_sim_scanner(url: DeviceURL, **kw: Any) -> Any:
     """``sim://?cola=b&scene=seed003&realtime=0``: an embedded simulated scanner plus a connected client.
 
     Simulator options: ``cola`` (a|b, default b), ``scene`` (default seed003), ``realtime``
-    (default 1), ``time_scale`` (default 1), ``seed`` (default 0). Every other option
+    (default 1), ``time_scale`` (default 1), ``seed`` (default 0), ``sensor`` (ideal|lms1xx,
+    default ideal; a ``sensor`` keyword argument wins). Every other option
     (``timeout``, ``reconnect``, ``queue``...) goes to the LMS100 client's ``tcp://`` URL, which
     rejects unknown ones. Keyword arguments ``calibration``, ``motor_angle_at``, ``sensor`` go to
     :class:`SimulatedLMS100`, all others to :func:`drivers.lms100.client.open_url`.
@@ -53,8 +55,10 @@ def open_sim_scanner(url: DeviceURL, **kw: Any) -> Any:
     realtime = url.get_bool("realtime", True)
     time_scale = url.get_float("time_scale", 1.0, lo=1e-3, hi=1e6)
     seed = url.get_int("seed", 0, lo=0)
+    sensor_name = url.get_str("sensor", "ideal", choices=SENSOR_NAMES)
     forward = {k: v for k, v in url.query.items() if k not in _SIM_URL_OPTIONS}
     device_kw = {k: kw.pop(k) for k in ("calibration", "motor_angle_at", "sensor") if k in kw}
+    device_kw.setdefault("sensor", make_sensor(sensor_name))
     try:
         device = SimulatedLMS100(scene, seed=seed, realtime=realtime, time_scale=time_scale, **device_kw)
     except LrmsError as exc:  # unknown scene name

@@ -32,7 +32,7 @@ from lrms.kinematics import RigCalibration
 from sim.drive.model import SimDrive
 from sim.scanner.device import SimulatedLMS100
 from sim.scanner.server import ScannerServer
-from sim.scene import Scene, SensorModel
+from sim.scene import SENSOR_NAMES, Scene, Sensor, make_sensor, sensor_name
 
 FloatArray = NDArray[np.float64]
 _channels = itertools.count(1)
@@ -86,7 +86,7 @@ class SimulatedRig:
         self,
         scene: Scene | str = "seed003",
         calibration: RigCalibration | None = None,
-        sensor: SensorModel | None = None,
+        sensor: Sensor | None = None,
         *,
         seed: int = 0,
         cola: str = "b",
@@ -207,6 +207,7 @@ class SimulatedRig:
     def describe(self) -> dict[str, Any]:
         return {
             "scene": self.scanner.scene.name,
+            "sensor": sensor_name(self.scanner.sensor),
             "scanner_url": self.scanner_url,
             "motor_url": self.motor_url,
             "can": self.can_kind,
@@ -242,6 +243,7 @@ def main(argv: list[str] | None = None) -> int:
 
     parser = argparse.ArgumentParser(prog="python -m sim.rig", description=main.__doc__)
     parser.add_argument("--scene", default="seed003")
+    parser.add_argument("--sensor", choices=SENSOR_NAMES, default="ideal", help="sensor model (default ideal)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--cola", choices=("a", "b"), default="b")
     parser.add_argument("--can", choices=("socketcand",), default="socketcand")
@@ -254,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
     unknown = set(noise) - {"sigma_l", "sigma_alpha", "sigma_beta"}
     if unknown:
         parser.error(f"--noise: unknown keys {sorted(unknown)} (sigma_l in m, sigma_alpha and sigma_beta in rad)")
-    sensor = SensorModel(**{k: float(v) for k, v in noise.items()})
+    sensor = make_sensor(args.sensor, **{k: float(v) for k, v in noise.items()})
     with SimulatedRig(
         args.scene, calibration, sensor, seed=args.seed, cola=args.cola, can=args.can, node=args.node
     ) as rig:

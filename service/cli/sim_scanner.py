@@ -17,6 +17,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cola", choices=("a", "b"), default="b", help="CoLa dialect (default b)")
     parser.add_argument("--scene", default="seed003", help="scene name (see --list-scenes; default seed003)")
     parser.add_argument("--list-scenes", action="store_true", help="print the scene names and exit")
+    parser.add_argument(
+        "--sensor",
+        choices=("ideal", "lms1xx"),
+        default="ideal",
+        help="sensor model: ideal (thin beam, seed 003's noise; default) or lms1xx (beam footprint, echoes, RSSI)",
+    )
     mode = parser.add_mutually_exclusive_group()
     mode.add_argument("--realtime", dest="realtime", action="store_true", default=True, help="stream at 25/50 Hz")
     mode.add_argument(
@@ -28,7 +34,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from sim.scanner import ScannerServer, SimulatedLMS100
-    from sim.scene import describe_scene, list_scenes
+    from sim.scene import describe_scene, list_scenes, make_sensor
 
     if args.list_scenes:
         for name in list_scenes():
@@ -37,13 +43,16 @@ def run(args: argparse.Namespace) -> int:
     # rejected requests are logged by the device (WARNING): show them with time and source
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     port = args.port if args.port is not None else (2111 if args.cola == "a" else 2112)
-    device = SimulatedLMS100(args.scene, seed=args.seed, realtime=args.realtime, time_scale=args.time_scale)
+    device = SimulatedLMS100(
+        args.scene, sensor=make_sensor(args.sensor), seed=args.seed, realtime=args.realtime, time_scale=args.time_scale
+    )
     server = ScannerServer(device, host=args.host, port=port, dialect=args.cola)
     mode = "real time" if args.realtime else "fast (virtual clock)"
     try:
         server.start()
         host, bound = server.address
-        print(f"simulated LMS100 on tcp://{host}:{bound}?cola={args.cola} scene={args.scene} {mode}", flush=True)
+        where = f"tcp://{host}:{bound}?cola={args.cola}"
+        print(f"simulated LMS100 on {where} scene={args.scene} sensor={args.sensor} {mode}", flush=True)
         server.serve_forever()
     except KeyboardInterrupt:
         print("stopped", file=sys.stderr)

@@ -51,6 +51,7 @@ import numpy as np
 
 from drivers.errors import DriverError
 from drivers.lms100 import (
+    Channel,
     ErrorReply,
     FieldGeometry,
     InputStateEvent,
@@ -71,7 +72,7 @@ from sim.scanner.requests import (
     SFA_UNKNOWN_ERROR,
     dispatch,
 )
-from sim.scene import Scene, SensorModel, cast_beams, get_scene
+from sim.scene import BeamSamples, Scene, Sensor, SensorModel, cast_beams, get_scene
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +84,40 @@ U32 = 1 << 32
 
 MotorAngleFn = Callable[[np.ndarray], np.ndarray]
 EventListener = Callable[["Session", Message], None]
+
+
+def scan_channels(
+    samples: BeamSamples, data: WriteScanDataConfig, start_deg: float, step_deg: float
+) -> tuple[list[Channel], list[Channel]]:
+    """The 16-bit and 8-bit channels of one scan as ``LMDscandatacfg`` asks for them.
+
+    Output channel (first byte, a bit mask): 1 first echo (DIST1), 2 second echo (DIST2), 3 both;
+    with ``remission`` the matching RSSI1 / RSSI2 follow, as 16-bit channels (resolution 1) or 8-bit
+    ones (resolution 0, clipped at 255). A thin-beam sensor has no second echo: DIST2 / RSSI2 are 0.
+    """
+    mask = data.output_channel[0]
+    zeros = np.zeros_like(samples.ranges)
+    echoes = []
+    if mask & 1:
+        echoes.append(("1", samples.ranges, samples.rssi))
+    if mask & 2:
+        r2 = samples.ranges2 if samples.ranges2 is not None else zeros
+        s2 = samples.rssi2 if samples.rssi2 is not None else zeros
+        echoes.append(("2", r2, s2))
+    channels_16 = []
+    for n, ranges, _ in echoes:
+        mm = np.clip(np.rint(ranges * 1000.0), 0, 65535).astype(np.uint16)
+        channels_16.append(make_channel(f"DIST{n}", mm, start_deg, step_deg))
+    channels_8 = []
+    if data.remission:
+        for n, _, rssi in echoes:
+            if data.resolution == 1:
+                values16 = np.clip(np.rint(rssi), 0, 65535).astype(np.uint16)
+                channels_16.append(make_channel(f"RSSI{n}", values16, start_deg, step_deg))
+            else:
+                values8 = np.clip(np.rint(rssi), 0, 255).astype(np.uint8)
+                channels_8.append(make_channel(f"RSSI{n}", values8, start_deg, step_deg))
+    return channels_16, channels_8
 
 
 class SimulatorError(DriverError):
@@ -184,7 +219,7 @@ class SimulatedLMS100:
         scene: Scene | str = "seed003",
         calibration: RigCalibration | None = None,
         motor_angle_at: MotorAngleFn | None = None,
-        sensor: SensorModel | None = None,
+        sensor: Sensor | None = None,
         *,
         seed: int = 0,
         realtime: bool = True,
@@ -204,7 +239,7 @@ class SimulatedLMS100:
             raise SimulatorError(f"scene must be a Scene or a scene name, got {scene!r}")
         self.calibration = calibration if calibration is not None else RigCalibration()
         self.motor_angle_at: MotorAngleFn = motor_angle_at if motor_angle_at is not None else _constant_zero
-        self.sensor = sensor if sensor is not None else SensorModel()
+        self.sensor: Sensor = sensor if sensor is not None else SensorModel()
         if not 0 < serial_number < U32:
             raise SimulatorError(f"serial number must fit uint32, got {serial_number}")
         if startup_status_scans < 0 or reconfigure_busy_s < 0:
@@ -359,22 +394,9 @@ class SimulatedLMS100:
             raise SimulatorError(f"motor_angle_at must return one finite angle per beam time, got shape {motor.shape}")
         dev_rad = np.deg2rad(dev_raw / 1e4)
         rng = np.random.default_rng([self.seed, index])
-        samples = cast_beams(self.scene, self.calibration, self.sensor, dev_rad, motor, rng)
-        mm = np.clip(np.rint(samples.ranges * 1000.0), 0, 65535).astype(np.uint16)
+        samples = cast_beams(self.scene, self.calibration, self.sensor, dev_rad, motor, rng, time_s=beam_times_s)
         start_deg, step_deg = float(dev_raw[0]) / 1e4, cfg.angular_resolution / 1e4
-        channels_16 = [make_channel("DIST1", mm, start_deg, step_deg)]
-        channels_8 = []
-        if cfg.data.remission:
-            if cfg.data.resolution == 1:
-                channels_16.append(
-                    make_channel(
-                        "RSSI1", np.clip(np.rint(samples.rssi), 0, 65535).astype(np.uint16), start_deg, step_deg
-                    )
-                )
-            else:
-                channels_8.append(
-                    make_channel("RSSI1", np.clip(np.rint(samples.rssi), 0, 255).astype(np.uint8), start_deg, step_deg)
-                )
+        channels_16, channels_8 = scan_channels(samples, cfg.data, start_deg, step_deg)
         time_info = scan_time_of(t.start_us) if cfg.data.time else None
         scan = Scan(
             version=1,

@@ -191,7 +191,10 @@ def _dispatch(dev: SimulatedLMS100, session: Session, msg: Message) -> list[Mess
         problems = [
             text
             for bad, text in (
-                (tuple(msg.output_channel) != (1, 0), f"output channel {msg.output_channel} (only (1, 0))"),
+                (
+                    msg.output_channel[0] not in (1, 2, 3) or msg.output_channel[1] != 0,
+                    f"output channel {msg.output_channel} (1 first echo, 2 second echo, 3 both; second byte 0)",
+                ),
                 (msg.resolution not in (0, 1), f"RSSI resolution {msg.resolution} (0 or 1)"),
                 (msg.unit != 0, f"unit {msg.unit} (only 0)"),
                 (tuple(msg.encoder) != (0, 0), f"encoder {msg.encoder} (none)"),

@@ -108,6 +108,82 @@ def seed003() -> Scene:
     return scene
 
 
+#: The room of :func:`part_in_room` (``seed003-room``): walls at these x (m), the wall behind the
+#: rig at this y, the ceiling at this z, and the back wall this far behind the part's far side.
+ROOM_SIDE_WALLS_X = (-2.5, 3.0)
+ROOM_REAR_WALL_Y = -1.5
+ROOM_CEILING_Z = 2.2
+ROOM_BACK_GAP = 1.2
+
+
+def add_room(scene: Scene, back_wall_y: float) -> None:
+    """A closed room around the rig: floor, ceiling, back wall at ``back_wall_y``, side and rear walls.
+
+    Remissions (ours): floor 0.2 (concrete), walls 0.6 (painted), ceiling 0.5.
+    """
+    z0, z1 = SEED003_FLOOR_Z, ROOM_CEILING_Z
+    xl, xr = ROOM_SIDE_WALLS_X
+    yr = ROOM_REAR_WALL_Y
+    height, zc = z1 - z0, 0.5 * (z0 + z1)
+    width, xc = xr - xl, 0.5 * (xl + xr)
+    depth, yc = back_wall_y - yr, 0.5 * (back_wall_y + yr)
+    scene.add(Plane((0.0, 0.0, z0), (0.0, 0.0, 1.0)), remission=0.2, name="floor")
+    scene.add(Plane((0.0, 0.0, z1), (0.0, 0.0, -1.0)), remission=0.5, name="ceiling")
+    x_axis = (1.0, 0.0, 0.0)
+    y_axis = (0.0, 1.0, 0.0)
+    scene.add(Plane((xc, back_wall_y, zc), (0, -1, 0), size=(width, height), u_axis=x_axis), 0.6, "back_wall")
+    scene.add(Plane((xc, yr, zc), (0, 1, 0), size=(width, height), u_axis=x_axis), 0.6, "rear_wall")
+    scene.add(Plane((xl, yc, zc), (1, 0, 0), size=(depth, height), u_axis=y_axis), 0.6, "left_wall")
+    scene.add(Plane((xr, yc, zc), (-1, 0, 0), size=(depth, height), u_axis=y_axis), 0.6, "right_wall")
+
+
+def part_in_room(
+    diameter: float = SEED003_DIAMETER,
+    distance: float = SEED003_AXIS_POINT[1],
+    height: float = SEED003_HEIGHT,
+    remission: float = 0.35,
+    name: str = "room",
+) -> Scene:
+    """A cylindrical part of ``diameter`` on a table ``distance`` along +y, in a closed room.
+
+    The part stands on a table (top at z = -0.1 m, at least 1.2 x 0.8 m and 0.4 m larger than the
+    part) with its near side 0.21 m to the right of the motor shaft, as seed 003's part (axis
+    x = 0.28 m for D = 137.5 mm), so the fan of scan planes covers it. Around it: the room of
+    :func:`add_room` (back wall :data:`ROOM_BACK_GAP` behind the part), and neighbouring parts on
+    the floor: a 250 mm cylinder 1 m high beside and behind the table, and a 0.5 m crate on the
+    other side. The part is the object named "cylinder".
+    """
+    if not (np.isfinite(diameter) and 0.0 < diameter <= 2.0):
+        raise SceneError(f"part diameter must be within (0, 2] m, got {diameter!r}")
+    if not (np.isfinite(distance) and 1.0 <= distance <= 8.0):
+        raise SceneError(f"part distance must be within [1, 8] m, got {distance!r}")
+    x0 = SEED003_AXIS_POINT[0] + 0.5 * (diameter - SEED003_DIAMETER)
+    z0 = SEED003_AXIS_POINT[2]
+    scene = Scene(name)
+    scene.add(Cylinder((x0, distance, z0), (0.0, 0.0, 1.0), diameter / 2, height), remission=remission, name="cylinder")
+    sx, sy = max(1.2, diameter + 0.4), max(0.8, diameter + 0.4)
+    top = 0.04
+    scene.add(Box((x0, distance, z0 - top / 2), (sx, sy, top)), remission=0.6, name="table")
+    leg_h = (z0 - top) - SEED003_FLOOR_Z
+    for i, (fx, fy) in enumerate(((-1, -1), (1, -1), (-1, 1), (1, 1))):
+        centre = (x0 + fx * (sx / 2 - 0.05), distance + fy * (sy / 2 - 0.05), SEED003_FLOOR_Z + leg_h / 2)
+        scene.add(Box(centre, (0.05, 0.05, leg_h)), remission=0.4, name=f"table_leg{i}")
+    far = distance + diameter / 2
+    scene.add(
+        Cylinder((x0 + sx / 2 + 0.5, far + 0.4, SEED003_FLOOR_Z), (0.0, 0.0, 1.0), 0.125, 1.0),
+        remission=0.3,
+        name="neighbour_part",
+    )
+    scene.add(Box((x0 - sx / 2 - 0.6, far + 0.3, SEED003_FLOOR_Z + 0.25), (0.5, 0.5, 0.5)), 0.5, "neighbour_crate")
+    add_room(scene, far + ROOM_BACK_GAP)
+    return scene
+
+
+def seed003_room() -> Scene:
+    """Seed 003's part on its table in a closed room (walls 1.2 m behind it), with neighbouring parts."""
+    return part_in_room(name="seed003-room")
+
+
 def seed003_bare() -> Scene:
     """Only seed 003's cylinder and its table: no room, no clutter."""
     scene = Scene("seed003-bare")
@@ -140,6 +216,11 @@ def elbow() -> Scene:
 
 
 register_scene("seed003", seed003, "seed 003: 137.5 mm cylinder on a table 2.53 m along +y, floor, wall, clutter")
+register_scene(
+    "seed003-room",
+    seed003_room,
+    "seed 003's part on its table in a closed room: walls, floor, ceiling, neighbouring parts",
+)
 register_scene("seed003-bare", seed003_bare, "seed 003's cylinder and table only")
 register_scene("empty", empty, "nothing: every beam misses")
 register_scene("wall", wall, "an infinite wall at y = 3 m")

@@ -17,6 +17,7 @@ range lies outside ``[range_min, range_max]``, that miss everything, or whose ec
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -31,6 +32,54 @@ SIGMA_L_SEED003 = float(np.sqrt(136.11e-6))
 SIGMA_ALPHA_SEED003 = float(np.deg2rad(1.74e-3))
 #: Seed 003: motor-angle standard deviation (3.6e-5 deg, see module notes), in rad.
 SIGMA_BETA_SEED003 = float(np.deg2rad(3.6e-5))
+
+
+@dataclass(frozen=True)
+class Echoes:
+    """What a sensor model makes of ``N`` beams (flat arrays of length ``N``).
+
+    ``range``: reported range (m, 0 = no echo); ``valid``: an echo was reported; ``true_range``:
+    the noise- and systematics-free range of that echo (inf: none); ``index``: the scene object
+    that gave it (-1: none); ``cos_incidence``, ``remission``: of the surface (spot means for a
+    footprint model); ``rssi``: digits (0: none). A footprint model also fills ``coverage`` (the
+    share of the spot's energy profile on the echo's surface, 0..1), ``energy`` (returned energy
+    relative to a white target filling the spot head-on at 1 m) and the second echo (``range2``,
+    ``valid2``, ``true_range2``, ``index2``, ``rssi2``: the DIST2 / RSSI2 channel); a thin-beam
+    model leaves them None.
+    """
+
+    range: FloatArray
+    valid: NDArray[np.bool_]
+    true_range: FloatArray
+    index: NDArray[np.intp]
+    cos_incidence: FloatArray
+    remission: FloatArray
+    rssi: FloatArray
+    coverage: FloatArray | None = None
+    energy: FloatArray | None = None
+    range2: FloatArray | None = None
+    valid2: NDArray[np.bool_] | None = None
+    true_range2: FloatArray | None = None
+    index2: NDArray[np.intp] | None = None
+    rssi2: FloatArray | None = None
+
+
+class Sensor(Protocol):
+    """A sensor model: angle noise of the fired beams, and the echoes of rays in a scene.
+
+    ``time_s``: per ray, device time since power-on (s) for warm-up drift; None = warmed up.
+    """
+
+    def angle_noise(self, shape: tuple[int, ...], rng: np.random.Generator | None) -> tuple[FloatArray, FloatArray]: ...
+
+    def echoes(
+        self,
+        scene: Scene,
+        origins: FloatArray,
+        dirs: FloatArray,
+        rng: np.random.Generator | None,
+        time_s: FloatArray | None = None,
+    ) -> Echoes: ...
 
 
 @dataclass(frozen=True)
@@ -93,6 +142,28 @@ class SensorModel:
         e = np.asarray(echo, dtype=np.float64)
         return np.where(np.asarray(valid, dtype=bool), self.rssi_gain * e, 0.0)
 
+    def echoes(
+        self,
+        scene: Scene,
+        origins: FloatArray,
+        dirs: FloatArray,
+        rng: np.random.Generator | None,
+        time_s: FloatArray | None = None,
+    ) -> Echoes:
+        """A thin beam: one ray per beam, its first hit, Gaussian range noise (no drift: ``time_s`` unused)."""
+        hits = scene.raycast(origins, dirs)
+        echo = hits.remission * hits.cos_incidence
+        ranges, valid = self.measure(hits.range, echo, rng)
+        return Echoes(
+            range=ranges,
+            valid=valid,
+            true_range=hits.range,
+            index=hits.index,
+            cos_incidence=hits.cos_incidence,
+            remission=hits.remission,
+            rssi=self.rssi(echo, valid),
+        )
+
 
 @dataclass(frozen=True)
 class BeamSamples:
@@ -101,7 +172,10 @@ class BeamSamples:
     ``ranges``: what the device reports (m, 0 = no echo); ``valid``: echo present;
     ``true_range``: noise-free range along the beam actually fired (inf: miss); ``index``: object
     hit (-1: none); ``cos_incidence``, ``remission``, ``rssi``; ``device_angle`` and
-    ``motor_angle``: the nominal (reported) angles in rad.
+    ``motor_angle``: the nominal (reported) angles in rad. A footprint sensor
+    (:class:`sim.scene.lms1xx.LMS1xxSensor`) also gives ``coverage``, ``energy`` and the second
+    echo ``ranges2``, ``valid2``, ``true_range2``, ``index2``, ``rssi2`` (see :class:`Echoes`);
+    the thin-beam :class:`SensorModel` leaves them None.
     """
 
     ranges: FloatArray
@@ -113,6 +187,13 @@ class BeamSamples:
     rssi: FloatArray
     device_angle: FloatArray
     motor_angle: FloatArray
+    coverage: FloatArray | None = None
+    energy: FloatArray | None = None
+    ranges2: FloatArray | None = None
+    valid2: NDArray[np.bool_] | None = None
+    true_range2: FloatArray | None = None
+    index2: NDArray[np.intp] | None = None
+    rssi2: FloatArray | None = None
 
     def points(self, calibration: RigCalibration) -> FloatArray:
         """World points ``(K, 3)`` of the valid samples, mapped with the nominal angles (Eq. 1)."""
@@ -120,18 +201,28 @@ class BeamSamples:
         return calibration.map_samples(self.ranges[v], self.device_angle[v], self.motor_angle[v])
 
 
+_G = TypeVar("_G", bound=np.generic)
+
+
+def _shaped(a: NDArray[_G] | None, shape: tuple[int, ...]) -> NDArray[_G] | None:
+    return None if a is None else a.reshape(shape)
+
+
 def cast_beams(
     scene: Scene,
     calibration: RigCalibration,
-    sensor: SensorModel,
+    sensor: Sensor,
     device_angles_rad: ArrayLike,
     motor_angles_rad: ArrayLike,
     rng: np.random.Generator | None = None,
+    time_s: ArrayLike | None = None,
 ) -> BeamSamples:
     """Simulate samples for device beam angles and motor angles (broadcast against each other).
 
     Typical shapes: ``device_angles (M,)`` with ``motor_angles (S, 1)`` (one plane per scan) or
     ``(S, M)`` (the plane turns during the scan). Without ``rng`` nothing is random.
+    ``time_s``: device time since power-on (s) of each beam (broadcast too), for a sensor with
+    warm-up drift; None = warmed up.
     """
     dev, mot = np.broadcast_arrays(
         np.asarray(device_angles_rad, dtype=np.float64), np.asarray(motor_angles_rad, dtype=np.float64)
@@ -146,26 +237,37 @@ def cast_beams(
     rot = calibration.world_from_rig[:3, :3]
     origins = calibration.to_world(o_rig)
     dirs = d_rig @ rot.T
-    hits = scene.raycast(origins, dirs)
-    echo = hits.remission * hits.cos_incidence
-    ranges, valid = sensor.measure(hits.range, echo, rng)
+    times = None
+    if time_s is not None:
+        times = np.broadcast_to(np.asarray(time_s, dtype=np.float64), shape).ravel()
+        if not np.all(np.isfinite(times)):
+            raise SceneError("beam times must be finite")
+    e = sensor.echoes(scene, origins, dirs, rng, times)
+
     return BeamSamples(
-        ranges=ranges.reshape(shape),
-        valid=valid.reshape(shape),
-        true_range=hits.range.reshape(shape),
-        index=hits.index.reshape(shape),
-        cos_incidence=hits.cos_incidence.reshape(shape),
-        remission=hits.remission.reshape(shape),
-        rssi=sensor.rssi(echo, valid).reshape(shape),
+        ranges=e.range.reshape(shape),
+        valid=e.valid.reshape(shape),
+        true_range=e.true_range.reshape(shape),
+        index=e.index.reshape(shape),
+        cos_incidence=e.cos_incidence.reshape(shape),
+        remission=e.remission.reshape(shape),
+        rssi=e.rssi.reshape(shape),
         device_angle=np.array(dev, dtype=np.float64),
         motor_angle=np.array(mot, dtype=np.float64),
+        coverage=_shaped(e.coverage, shape),
+        energy=_shaped(e.energy, shape),
+        ranges2=_shaped(e.range2, shape),
+        valid2=_shaped(e.valid2, shape),
+        true_range2=_shaped(e.true_range2, shape),
+        index2=_shaped(e.index2, shape),
+        rssi2=_shaped(e.rssi2, shape),
     )
 
 
 def simulate_sweep(
     scene: Scene,
     calibration: RigCalibration,
-    sensor: SensorModel,
+    sensor: Sensor,
     device_angles_rad: ArrayLike,
     motor_angles_rad: ArrayLike,
     rng: np.random.Generator | None = None,
@@ -193,7 +295,7 @@ def lms1xx_device_angles(resolution_deg: float = 0.25) -> FloatArray:
 def sweep_cloud(
     scene: Scene,
     calibration: RigCalibration,
-    sensor: SensorModel,
+    sensor: Sensor,
     motor_angles_rad: ArrayLike,
     rng: np.random.Generator | None = None,
     resolution_deg: float = 0.25,
@@ -224,7 +326,7 @@ def beam_times(count: int, scan_frequency_hz: float = 25.0, resolution_deg: floa
 def continuous_sweep_cloud(
     scene: Scene,
     calibration: RigCalibration,
-    sensor: SensorModel,
+    sensor: Sensor,
     motor_start_rad: float,
     motor_stop_rad: float,
     speed_rad_s: float,

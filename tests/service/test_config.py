@@ -68,6 +68,7 @@ def test_token_from_environment(monkeypatch: pytest.MonkeyPatch) -> None:
         ("[sim]\n[kinematics]\np_m=-1\n", "inner parameter"),
         ("[sim]\n[kinematics]\nbogus=1\n", "bogus"),
         ("[sim]\nscene=3\n", "scene"),
+        ("[sim]\nsensor='lms2xx'\n", "sensor"),
         ("[sim\n", "not valid TOML"),
         ("[scanner]\nurl='10.0.0.5:2112'\n[motor]\nurl='canopen+socketcan://can0'\n", "not a device URL"),
     ],
@@ -92,6 +93,11 @@ def test_the_real_rig_example_in_the_docs_is_valid() -> None:
     assert block is not None
     cfg = parse_toml(block.group(1))
     assert not cfg.is_sim and cfg.motor.url is not None and cfg.motor.url.startswith("canopen+socketcan://")
+
+
+def test_sim_sensor_model_is_selectable() -> None:
+    assert parse_toml("[sim]\n").sim.sensor == "ideal"  # type: ignore[union-attr]
+    assert parse_toml("[sim]\nsensor = 'lms1xx'\n").sim.sensor == "lms1xx"  # type: ignore[union-attr]
 
 
 def test_noise_in_degrees_becomes_the_si_noise_model_once() -> None:

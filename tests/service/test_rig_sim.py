@@ -61,9 +61,9 @@ def _check_cylinder(result: dict[str, Any], gum: bool = True) -> None:
 class RigProcess:
     """``python -m sim.rig`` with its control channel (one command line in, one JSON line out)."""
 
-    def __init__(self) -> None:
+    def __init__(self, *args: str) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "sim.rig"], cwd=REPO, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+            [sys.executable, "-m", "sim.rig", *args], cwd=REPO, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
         )
         assert self.proc.stdout is not None and self.proc.stdin is not None
         self.stdin, self.stdout = self.proc.stdin, self.proc.stdout
@@ -87,6 +87,15 @@ class RigProcess:
         if self.proc.poll() is None:
             self.stdin.close()
             self.proc.wait(timeout=20)
+
+
+def test_sim_rig_process_takes_the_lms1xx_sensor() -> None:
+    rig = RigProcess("--sensor", "lms1xx", "--scene", "seed003-room")
+    try:
+        assert rig.urls["sensor"] == "lms1xx" and rig.urls["scene"] == "seed003-room"
+        assert rig.command("describe")["sensor"] == "lms1xx"
+    finally:
+        rig.close()
 
 
 @pytest.fixture(scope="module")

@@ -9,6 +9,7 @@ import sys
 from collections.abc import Callable
 
 import numpy as np
+import pytest
 
 from drivers.lms100 import DeviceIdent, ErrorReply, PollScan, RawTelegram, ReadDeviceIdent, ScanDataReply
 from tests.conftest import REPO
@@ -17,9 +18,10 @@ from tests.sim.conftest import Link
 CLI = [sys.executable, "-m", "service.cli.main", "sim", "scanner"]
 
 
-def test_cli_serves_until_interrupted(connect: Callable[..., Link]) -> None:
+@pytest.mark.parametrize("sensor", ["ideal", "lms1xx"])
+def test_cli_serves_until_interrupted(connect: Callable[..., Link], sensor: str) -> None:
     proc = subprocess.Popen(
-        [*CLI, "--port", "0", "--cola", "a", "--scene", "wall", "--fast"],
+        [*CLI, "--port", "0", "--cola", "a", "--scene", "wall", "--fast", "--sensor", sensor],
         cwd=REPO,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -30,6 +32,7 @@ def test_cli_serves_until_interrupted(connect: Callable[..., Link]) -> None:
         line = proc.stdout.readline()
         m = re.search(r"tcp://(127\.0\.0\.1):(\d+)\?cola=a", line)
         assert m, line
+        assert f"sensor={sensor}" in line
         link = connect((m.group(1), int(m.group(2))), "a")
         assert link.request(ReadDeviceIdent()) == DeviceIdent("LMS10x_FieldEval", "V1.36-21.10.2010")
         polled = link.request(PollScan())

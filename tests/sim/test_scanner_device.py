@@ -59,7 +59,7 @@ from drivers.lms100 import (
 from drivers.lms100.framing import Dialect
 from lrms.kinematics import RigCalibration
 from sim.scanner import ScannerServer, SimulatedLMS100, SimulatorError
-from sim.scene import SEED003_AXIS_POINT, SEED003_DIAMETER, SIGMA_L_SEED003, Plane, Scene, SensorModel
+from sim.scene import SEED003_AXIS_POINT, SEED003_DIAMETER, SIGMA_L_SEED003, LMS1xxSensor, Plane, Scene, SensorModel
 from tests.sim.conftest import Link
 
 Connect = Callable[..., Link]
@@ -159,7 +159,9 @@ def test_scan_area_and_sector_errors_and_sfa_codes(fast_server: ScannerServer, c
     assert isinstance(two_sectors, SetScanConfigReply) and two_sectors.status == 5
     # Output range outside the scan area: value out of range.
     assert link.request(WriteOutputRange(1, 2500, -460000, 0)) == ErrorReply(0x04)
-    assert link.request(WriteScanDataConfig(output_channel=(3, 0))) == ErrorReply(0x04)
+    # An LMS1xx has two echoes (mask 1, 2, 3): a third echo (mask 4) or 0x1F (LMS5xx) is out of range.
+    assert link.request(WriteScanDataConfig(output_channel=(4, 0))) == ErrorReply(0x04)
+    assert link.request(WriteScanDataConfig(output_channel=(0x1F, 0))) == ErrorReply(0x04)
     # Unknown variable / method / event, a known method with missing parameters, a reply sent as a request.
     assert link.request(RawTelegram("sRN", "field030")) == ErrorReply(0x03)
     assert link.request(RawTelegram("sMN", "mNoSuchMethod")) == ErrorReply(0x02)
@@ -429,3 +431,42 @@ def test_a_failing_motor_callback_is_an_internal_error_not_a_dead_server(connect
         link = connect(srv.address)
         assert link.request(PollScan()) == ErrorReply(0x14)
         assert link.request(ReadDeviceIdent()) == DeviceIdent("LMS10x_FieldEval", "V1.36-21.10.2010")
+
+
+@pytest.mark.parametrize("resolution", [0, 1])
+def test_lms1xx_sensor_streams_two_echoes_and_rssi(connect: Connect, resolution: int) -> None:
+    """The footprint sensor through the real protocol: DIST1 + DIST2 (output channel 3) and RSSI1 +
+    RSSI2 as 8-bit (resolution 0) or 16-bit channels; second echoes where the spot straddles the
+    part's silhouette with the room's back wall 1.2 m behind it."""
+    device = SimulatedLMS100("seed003-room", sensor=LMS1xxSensor(), realtime=False, seed=2)
+    with ScannerServer(device) as srv:
+        link = connect(srv.address)
+        login(link)
+        cfg = WriteScanDataConfig(output_channel=(3, 0), remission=True, resolution=resolution)
+        assert link.request(cfg) == WriteScanDataConfigReply()
+        read = link.request(ReadScanDataConfig())
+        assert isinstance(read, ScanDataConfig) and tuple(read.output_channel) == (3, 0)
+        assert link.request(Run()) == RunReply(True)
+        reply = link.request(PollScan())
+        assert isinstance(reply, ScanDataReply)
+        scan = reply.scan
+        names16 = [c.name for c in scan.channels_16]
+        names8 = [c.name for c in scan.channels_8]
+        if resolution == 0:
+            assert names16 == ["DIST1", "DIST2"] and names8 == ["RSSI1", "RSSI2"]
+        else:
+            assert names16 == ["DIST1", "DIST2", "RSSI1", "RSSI2"] and names8 == []
+        d1, d2 = scan.ranges_m, scan.channel("DIST2").scaled() / 1000.0  # type: ignore[union-attr]
+        rssi1, rssi2 = scan.rssi, scan.channel("RSSI2").scaled()  # type: ignore[union-attr]
+        assert rssi1 is not None
+        assert np.array_equal(d1 > 0, rssi1 > 0) and np.array_equal(d2 > 0, rssi2 > 0)
+        two = d2 > 0
+        assert 1 <= np.count_nonzero(two) < 20  # only at depth steps
+        assert np.all(d2[two] - d1[two] > 0.3)  # the second echo lies behind the first
+        assert np.count_nonzero(d1 > 0) > 1000  # a closed room: nearly every beam returns
+        # Back to the first echo only: DIST2 and RSSI2 are gone.
+        login(link)
+        assert link.request(WriteScanDataConfig(output_channel=(1, 0), remission=True)) == WriteScanDataConfigReply()
+        assert link.request(Run()) == RunReply(True)
+        again = link.request(PollScan())
+        assert isinstance(again, ScanDataReply) and again.scan.channel("DIST2") is None

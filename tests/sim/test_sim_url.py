@@ -12,7 +12,7 @@ from drivers.errors import DeviceURLError
 from drivers.lms100.client import ScannerStateError
 from drivers.url import open_device
 from sim.scanner import ScannerServer, SimulatorError
-from sim.scene import SensorModel
+from sim.scene import LMS1xxSensor, SensorModel
 
 
 @pytest.mark.parametrize("cola", ["a", "b"])
@@ -33,6 +33,15 @@ def test_sim_url_opens_a_connected_client_and_closes_the_server(cola: str) -> No
         _ = server.address
     with pytest.raises(OSError):
         socket.create_connection(address, timeout=2).close()
+
+
+def test_sim_url_selects_the_lms1xx_sensor() -> None:
+    with open_device("scanner", "sim://?scene=wall&realtime=0&sensor=lms1xx&timeout=5") as client:
+        assert isinstance(client.sim_server.device.sensor, LMS1xxSensor)
+        scan = client.poll()
+        ahead = np.abs(scan.angles_rad - np.pi / 2) < np.deg2rad(20)
+        a = scan.angles_rad[ahead] - np.pi / 2
+        assert np.all(np.abs(scan.ranges_m[ahead] - 3.0 / np.cos(a)) < 0.1)  # 12 mm noise, 8 sigma
 
 
 def test_dropped_connection_reconnects_and_the_gap_is_counted() -> None:
@@ -69,6 +78,7 @@ def test_dropped_connection_reconnects_and_the_gap_is_counted() -> None:
         "sim://?scnee=wall",  # unknown options are passed to the tcp client, which rejects them
         "sim://somehost:2112?scene=wall",
         "sim://?realtime=maybe",
+        "sim://?sensor=lms2xx",
     ],
 )
 def test_bad_sim_urls_are_typed_errors(url: str) -> None:
