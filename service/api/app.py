@@ -2,30 +2,26 @@
 
 :class:`Service` (service.api.core) bundles what the routes need (config, store, job runner,
 scheduler, metrics and the rig's description); :func:`create_app` builds the app around one, from
-one router module per resource (service.api.routes), and holds the error handlers and the request
-counting middleware. The app starts the job runner and the scheduler when it starts serving and
-stops them on shutdown.
+one router module per resource (service.api.routes), with the error handlers of
+service.api.errors and the request counting middleware. The app starts the job runner and the
+scheduler when it starts serving and stops them on shutdown.
 """
 
 from __future__ import annotations
 
 import asyncio
-import json
 import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
 
-from fastapi import FastAPI, Request
-from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi import FastAPI
 
 from lrms import __version__
 from service.api.core import Service
+from service.api.errors import install_handlers
 from service.api.routes import measurements, ops, rig, schedules
-from service.errors import ServiceError
 from service.jobs import Metrics
-from service.store import NotFound, StoreError
 
 __all__ = ["Service", "create_app"]
 
@@ -61,34 +57,11 @@ def create_app(service: Service, manage_lifecycle: bool = True) -> FastAPI:
         version=__version__,
         description="Sweeps of the laser radar measurement system: measurements, raw logs, clouds, schedules.",
         lifespan=lifespan,
+        generate_unique_id_function=lambda route: route.name,  # operationId = the route function's name
     )
     app.state.service = service
 
-    # -- errors ---------------------------------------------------------------------------
-    @app.exception_handler(RequestValidationError)
-    async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:
-        errors = exc.errors()
-        parts = []
-        for e in errors:
-            loc = ".".join(str(x) for x in e.get("loc", ()))
-            parts.append(f"{loc}: {str(e.get('msg', '')).removeprefix('Value error, ')}")
-        return JSONResponse(
-            status_code=422,
-            content={"message": "; ".join(parts), "detail": json.loads(json.dumps(errors, default=str))},
-        )
-
-    @app.exception_handler(NotFound)
-    async def _not_found(request: Request, exc: NotFound) -> JSONResponse:
-        return JSONResponse(status_code=404, content={"detail": str(exc)})
-
-    @app.exception_handler(StoreError)
-    async def _conflict(request: Request, exc: StoreError) -> JSONResponse:
-        return JSONResponse(status_code=409, content={"detail": str(exc)})
-
-    @app.exception_handler(ServiceError)
-    async def _bad(request: Request, exc: ServiceError) -> JSONResponse:
-        return JSONResponse(status_code=400, content={"detail": str(exc)})
-
+    install_handlers(app)  # every error body as documented (service.api.errors)
     app.include_router(ops.router)
     for module in (rig, measurements, schedules):
         app.include_router(module.router, prefix="/api/v1")
