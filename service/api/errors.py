@@ -61,8 +61,9 @@ _DESCRIPTIONS: dict[int, str] = {
     400: "the request body could not be read (not UTF-8 JSON)",
     401: "no bearer token, or a wrong one",
     403: "write endpoints are disabled: no API token configured",
-    404: "no such measurement or schedule",
-    409: "the measurement's state does not allow this (already finished, still running)",
+    404: "no measurement or schedule with this id",
+    409: "the measurement's state does not allow this: cancel a finished one; its raw log or cloud while it "
+    "runs, or when it has none (cancelled before it ran, failed before anything was recorded)",
     413: "the request body is too large",
     422: "the request was refused: every refused field with the reason",
     429: "the measurement queue is full; retry after Retry-After seconds",

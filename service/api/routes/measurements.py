@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 from collections.abc import AsyncIterator
 from typing import Annotated, Literal
 
@@ -109,8 +110,12 @@ def _file(service: Service, mid: str, which: str) -> str:
     path = m.raw_path if which == "raw" else m.cloud_path
     if m.state not in FINAL_STATES:
         raise HTTPException(409, f"measurement {mid} is {m.state}: its {which} data is not complete yet")
+    # 404 is kept for an unknown id: a measurement that exists but has no such file (cancelled
+    # before it ran, failed before anything was recorded, the file removed from storage) is a 409
     if path is None:
-        raise HTTPException(404, f"measurement {mid} ({m.state}) has no {which} data")
+        raise HTTPException(409, f"measurement {mid} ({m.state}) has no {which} data")
+    if not os.path.isfile(path):
+        raise HTTPException(409, f"measurement {mid} ({m.state}): its {which} file is missing from storage")
     return path
 
 
