@@ -23,8 +23,10 @@ RUN_UP_MARGIN_DEG = 0.5
 CRON_MAX_LENGTH = 120
 #: Five fields separated by white space (croniter checks each field, and that the dates occur).
 CRON_PATTERN = r"^\s*\S+(\s+\S+){4}\s*$"
-#: Upcoming firings of a cron schedule checked against ``[schedules] min_interval_s``.
+#: Upcoming firings of a cron schedule checked against ``[schedules] min_interval_s``: at most this
+#: many, and none beyond the horizon (two leap-year cycles, for gaps that occur around 29 February).
 CRON_FIRINGS_CHECKED = 512
+CRON_HORIZON_S = 8 * 366 * 86400.0
 #: Bounds of any coordinate of a region of interest (world frame, m).
 ROI_LIMIT_M = 1000.0
 
@@ -276,16 +278,19 @@ def check_cron(cron: str) -> str:
 
 
 def cron_min_interval_s(cron: str, firings: int = CRON_FIRINGS_CHECKED, below: float = math.inf) -> float:
-    """The shortest time between two of the next ``firings`` firings of ``cron`` (stops early at
-    one shorter than ``below``); ``inf`` when fewer than two are found."""
+    """The shortest time between two of the next ``firings`` firings of ``cron`` within
+    :data:`CRON_HORIZON_S` (stops early at one shorter than ``below``); ``inf`` when fewer than
+    two are found."""
     from croniter import croniter
 
     it = croniter(cron, datetime.now(UTC))
     shortest = math.inf
     try:
-        prev = float(it.get_next(float))
+        prev = first = float(it.get_next(float))
         for _ in range(firings - 1):
             t = float(it.get_next(float))
+            if t - first > CRON_HORIZON_S:
+                break
             shortest = min(shortest, t - prev)
             if shortest < below:
                 break

@@ -655,7 +655,8 @@ def run_sweep(
     except BaseException as exc:
         abort.set()
         stop_error = stop_motor(motor)
-        mover.join(5.0)
+        if mover.ident is not None:  # started (enabling the motor may have failed before it was)
+            mover.join(5.0)
         with contextlib.suppress(Exception):
             pull_motor()
         reason = str(exc) or type(exc).__name__
