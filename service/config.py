@@ -48,8 +48,18 @@ DEFAULT_RIG = "default_rig.toml"
 DEFAULT_K = 3.0
 
 
+#: The slowest sweep speed and the smallest step a request or the ``[sweep]`` table may give: below
+#: them a sweep takes hours (the planned duration is checked against ``[sweep] max_duration_s`` too),
+#: and ``0.01 deg`` is still 14 encoder counts on the default drive (10000 counts x 50:1 per turn).
+MIN_SPEED_DEG_S = 0.1
+MIN_STEP_DEG = 0.01
+#: Bounds of the coverage factor k (a request's ``options.k``, ``[fit] k``).
+MIN_K = 0.5
+MAX_K = 10.0
+
+
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class DeviceConfig(_Strict):
@@ -63,6 +73,40 @@ class DeviceConfig(_Strict):
         if v is not None and "://" not in v:
             raise ValueError(f"not a device URL (expected scheme://...): {v!r}")
         return v
+
+
+class MotorConfig(DeviceConfig):
+    """The motor: URL and the limits of the output shaft in the drive's own frame (degrees, the
+    angles of ``lrms motor move``; beta = shaft angle - ``[kinematics] motor_zero_deg``).
+
+    Every sweep is checked against them when it is requested (the approach and run-out included),
+    again before the drive is commanded, and they are handed to the driver (which refuses targets
+    outside them and writes them to a CiA 402 drive's software position limits, 0x607D). The
+    defaults are one turn either way of the zero and the CiA 402 driver's own maxima.
+    """
+
+    min_angle_deg: float = Field(default=-180.0, ge=-3600.0, le=3600.0)
+    max_angle_deg: float = Field(default=180.0, ge=-3600.0, le=3600.0)
+    max_velocity_deg_s: float = Field(default=90.0, ge=MIN_SPEED_DEG_S, le=3600.0)
+    max_acceleration_deg_s2: float = Field(default=720.0, gt=0.0, le=100000.0)
+
+    @model_validator(mode="after")
+    def _travel(self) -> MotorConfig:
+        if not self.min_angle_deg < self.max_angle_deg:
+            raise ValueError(f"min_angle_deg {self.min_angle_deg} must be below max_angle_deg {self.max_angle_deg}")
+        return self
+
+    def drive_config(self) -> dict[str, float]:
+        """The limits as :meth:`drivers.servo.interface.DriveConfig.from_dict` keys (the driver's
+        default velocity and acceleration capped to them)."""
+        return {
+            "min_angle_deg": self.min_angle_deg,
+            "max_angle_deg": self.max_angle_deg,
+            "max_velocity_deg_s": self.max_velocity_deg_s,
+            "max_acceleration_deg_s2": self.max_acceleration_deg_s2,
+            "velocity_deg_s": min(20.0, self.max_velocity_deg_s),
+            "acceleration_deg_s2": min(90.0, self.max_acceleration_deg_s2),
+        }
 
 
 class ScannerConfig(DeviceConfig):
@@ -169,14 +213,15 @@ class SweepConfig(_Strict):
 
     start_deg: float = Field(default=-20.0, ge=-180.0, le=180.0)
     stop_deg: float = Field(default=70.0, ge=-180.0, le=180.0)
-    speed_deg_s: float = Field(default=10.0, gt=0.0, le=360.0)
+    speed_deg_s: float = Field(default=10.0, ge=MIN_SPEED_DEG_S, le=360.0)
     mode: Literal["constant", "step"] = "constant"
-    step_deg: float = Field(default=1.0, gt=0.0, le=90.0)
+    step_deg: float = Field(default=1.0, ge=MIN_STEP_DEG, le=90.0)
     scans_per_step: int = Field(default=1, ge=1, le=1000)
     acceleration_deg_s2: float = Field(default=90.0, gt=0.0, le=100000.0)
     max_duration_s: float = Field(default=600.0, gt=0.0, le=86400.0)
-    """Longest a sweep may run (approach, sweep, run-out): the rig process stops the motor and fails
-    the measurement past it (``exceeded max duration N s``)."""
+    """The longest a sweep may run: a request whose plan (``service.models.planned_duration_s``) is
+    longer is refused (422); at run time the rig process stops the motor and fails the measurement
+    past it (``exceeded max duration N s``)."""
 
     @model_validator(mode="after")
     def _range(self) -> SweepConfig:
@@ -196,9 +241,15 @@ class FitConfig(_Strict):
 
     roi_min_m: tuple[float, float, float] | None = None
     roi_max_m: tuple[float, float, float] | None = None
-    k: float = Field(default=DEFAULT_K, gt=0.0, le=10.0)
+    k: float = Field(default=DEFAULT_K, ge=MIN_K, le=MAX_K)
     min_range_m: float = Field(default=0.05, ge=0.0)
     max_range_m: float = Field(default=20.0, gt=0.0)
+
+
+class SchedulesConfig(_Strict):
+    """Schedules: the shortest time between two firings of one schedule (cron or interval)."""
+
+    min_interval_s: float = Field(default=60.0, ge=1.0, le=86400.0)
 
 
 class SimConfig(_Strict):
@@ -227,7 +278,7 @@ class RigConfig(_Strict):
 
     name: str = "rig"
     scanner: ScannerConfig = Field(default_factory=ScannerConfig)
-    motor: DeviceConfig = Field(default_factory=DeviceConfig)
+    motor: MotorConfig = Field(default_factory=MotorConfig)
     sim: SimConfig | None = None
     kinematics: dict[str, Any] = Field(default_factory=dict)
     noise: NoiseConfig = Field(default_factory=NoiseConfig)
@@ -237,6 +288,7 @@ class RigConfig(_Strict):
     sweep: SweepConfig = Field(default_factory=SweepConfig)
     jobs: JobsConfig = Field(default_factory=JobsConfig)
     fit: FitConfig = Field(default_factory=FitConfig)
+    schedules: SchedulesConfig = Field(default_factory=SchedulesConfig)
 
     @model_validator(mode="after")
     def _devices(self) -> RigConfig:
@@ -291,6 +343,12 @@ def parse_config(data: dict[str, Any], base_dir: Path | None = None, source: str
         cfg = RigConfig.model_validate(data)
     except ValidationError as exc:
         raise ConfigError(f"{source}: {_format_errors(exc)}") from None
+    from service.models import SweepSpec, resolve_sweep  # models import this module
+
+    try:  # the [sweep] defaults must fit the motor's limits and the maximum duration
+        resolve_sweep(SweepSpec(), cfg)
+    except ValueError as exc:
+        raise ConfigError(f"{source}: [sweep] defaults: {exc}") from None
     if base_dir is not None and not cfg.storage.dir.is_absolute():
         storage = cfg.storage.model_copy(update={"dir": (base_dir / cfg.storage.dir).resolve()})
         cfg = cfg.model_copy(update={"storage": storage})

@@ -7,33 +7,61 @@ that a misspelt option is a 422 with the field's name, not a silent default.
 from __future__ import annotations
 
 import math
-from typing import Any, Literal
+from datetime import UTC, datetime
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from service.config import RigConfig
+from service.config import MAX_K, MIN_K, MIN_SPEED_DEG_S, MIN_STEP_DEG, RigConfig
+from service.errors import Loc, RequestFieldError
+
+#: The speed of the approach to a sweep's start (capped to ``[motor] max_velocity_deg_s``).
+APPROACH_SPEED_DEG_S = 30.0
+#: Extra travel beyond the constant-speed run-up ``v^2 / 2a`` on both sides of a constant sweep.
+RUN_UP_MARGIN_DEG = 0.5
+#: Cron strings: at most this many characters, and exactly five fields (minute hour day month weekday).
+CRON_MAX_LENGTH = 120
+#: Five fields separated by white space (croniter checks each field, and that the dates occur).
+CRON_PATTERN = r"^\s*\S+(\s+\S+){4}\s*$"
+#: Upcoming firings of a cron schedule checked against ``[schedules] min_interval_s``: at most this
+#: many, and none beyond the horizon (two leap-year cycles, for gaps that occur around 29 February).
+CRON_FIRINGS_CHECKED = 512
+CRON_HORIZON_S = 8 * 366 * 86400.0
+#: Bounds of any coordinate of a region of interest (world frame, m).
+ROI_LIMIT_M = 1000.0
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class SweepSpec(_Strict):
-    """The sweep of the scan plane. Missing fields take the rig's ``[sweep]`` defaults."""
+    """The sweep of the scan plane. Missing fields take the rig's ``[sweep]`` defaults.
+
+    These are the bounds of any rig; a request is also checked against the rig's own limits
+    (``[motor]`` travel and maximum speed, ``[sweep] max_duration_s``) by :func:`resolve_sweep`.
+    """
 
     start_deg: float | None = Field(default=None, ge=-180.0, le=180.0, description="first beta (deg)")
     stop_deg: float | None = Field(default=None, ge=-180.0, le=180.0, description="last beta (deg)")
-    speed_deg_s: float | None = Field(default=None, gt=0.0, le=360.0, description="constant sweep speed")
+    speed_deg_s: float | None = Field(
+        default=None, ge=MIN_SPEED_DEG_S, le=360.0, description="sweep speed (deg/s); at most the motor's maximum"
+    )
     mode: Literal["constant", "step"] | None = Field(default=None, description="constant velocity or step-and-scan")
-    step_deg: float | None = Field(default=None, gt=0.0, le=90.0, description="step of the step-and-scan mode")
+    step_deg: float | None = Field(
+        default=None, ge=MIN_STEP_DEG, le=90.0, description="step of the step-and-scan mode (deg)"
+    )
     scans_per_step: int | None = Field(default=None, ge=1, le=1000)
+
+
+Coordinate = Annotated[float, Field(ge=-ROI_LIMIT_M, le=ROI_LIMIT_M)]
 
 
 class RoiSpec(_Strict):
     """Axis-aligned box in the world frame (m); points outside are not fitted."""
 
-    min_m: tuple[float, float, float] | None = None
-    max_m: tuple[float, float, float] | None = None
+    min_m: tuple[Coordinate, Coordinate, Coordinate] | None = None
+    max_m: tuple[Coordinate, Coordinate, Coordinate] | None = None
 
     @model_validator(mode="after")
     def _ordered(self) -> RoiSpec:
@@ -47,13 +75,19 @@ class RoiSpec(_Strict):
 
 
 class FitOptions(_Strict):
-    k: float | None = Field(default=None, gt=0.0, le=10.0, description="coverage factor of the critical-point interval")
-    monte_carlo: int = Field(
-        default=0, ge=0, le=2000, description="Monte Carlo refits for the 95 % interval (GUM-S1): 0 = off, else >= 40"
+    k: float | None = Field(
+        default=None, ge=MIN_K, le=MAX_K, description="coverage factor of the critical-point interval"
     )
-    seed: int | None = Field(default=None, description="random seed of RANSAC and Monte Carlo")
+    monte_carlo: int = Field(
+        default=0,
+        ge=0,
+        le=2000,
+        description="Monte Carlo refits for the 95 % interval (GUM-S1): 0 = off, else >= 40",
+        json_schema_extra={"anyOf": [{"const": 0}, {"minimum": 40}]},
+    )
+    seed: int | None = Field(default=None, ge=0, le=2**32 - 1, description="random seed of RANSAC and Monte Carlo")
     degree_deg: float | None = Field(
-        default=None, gt=0.0, le=180.0, description="elbow: joint degree (deg); none = from the cloud"
+        default=None, ge=1.0, le=180.0, description="elbow: joint degree (deg); none = from the cloud"
     )
     ratio: float | None = Field(default=None, ge=0.5, le=20.0, description="elbow: fixed A/D ratio; none = free")
     flange: bool = Field(default=False, description="elbow: the joint has flanges (fit their diameter Df)")
@@ -91,7 +125,127 @@ class ResolvedSweep(BaseModel):
     acceleration_deg_s2: float
 
 
+def run_up_deg(speed_deg_s: float, acceleration_deg_s2: float) -> float:
+    """Travel before ``start`` and after ``stop`` of a constant sweep, to be at speed over the
+    window (:attr:`service.sweep.SweepPlan.run_up`)."""
+    return speed_deg_s * speed_deg_s / (2.0 * acceleration_deg_s2) + RUN_UP_MARGIN_DEG
+
+
+def step_dwell_s(scans_per_step: int, scan_frequency_hz: float) -> float:
+    """How long step-and-scan waits at each step (:func:`service.sweep.run_sweep`)."""
+    return 0.05 + (scans_per_step + 1) / scan_frequency_hz
+
+
+def travel_deg(sweep: ResolvedSweep) -> tuple[float, float]:
+    """The lowest and highest beta (deg) the sweep moves to: the window plus the run-up on both
+    sides in constant mode, the window itself in step mode."""
+    lo, hi = min(sweep.start_deg, sweep.stop_deg), max(sweep.start_deg, sweep.stop_deg)
+    extra = run_up_deg(sweep.speed_deg_s, sweep.acceleration_deg_s2) if sweep.mode == "constant" else 0.0
+    return lo - extra, hi + extra
+
+
+def _move_s(distance_deg: float, speed_deg_s: float, acceleration_deg_s2: float) -> float:
+    """A point-to-point move with a trapezoidal (or, if short, triangular) velocity profile."""
+    d = abs(distance_deg)
+    if d == 0.0:
+        return 0.0
+    if d >= speed_deg_s * speed_deg_s / acceleration_deg_s2:
+        return d / speed_deg_s + speed_deg_s / acceleration_deg_s2
+    return 2.0 * math.sqrt(d / acceleration_deg_s2)
+
+
+def planned_duration_s(
+    sweep: ResolvedSweep,
+    approach_speed_deg_s: float = APPROACH_SPEED_DEG_S,
+    scan_frequency_hz: float = 25.0,
+) -> float:
+    """The sweep's planned duration (s): the approach, the sweep and, in step-and-scan mode, the
+    dwell at every step, with the acceleration ramps.
+
+    The approach is counted from the far end of the same sweep (where an identical previous
+    measurement left the shaft). ``scan_frequency_hz`` sets the dwell; the default 25 Hz is the
+    slower LMS1xx mode, so the figure is an upper bound for either mode.
+    """
+    lo, hi = travel_deg(sweep)
+    a = sweep.acceleration_deg_s2
+    approach = _move_s(hi - lo, approach_speed_deg_s, a)
+    if sweep.mode == "constant":
+        return approach + _move_s(hi - lo, sweep.speed_deg_s, a)
+    n = math.floor(abs(sweep.stop_deg - sweep.start_deg) / sweep.step_deg + 1e-9) + 1
+    moves = (n - 1) * _move_s(sweep.step_deg, sweep.speed_deg_s, a)
+    return approach + moves + n * step_dwell_s(sweep.scans_per_step, scan_frequency_hz)
+
+
+def check_sweep(sweep: ResolvedSweep, config: RigConfig) -> list[tuple[Loc, str]]:
+    """What keeps ``sweep`` from running on the rig of ``config``: ``(field, reason)`` pairs, empty
+    when it fits (travel limits with the run-up, maximum speed and acceleration, duration)."""
+    errors: list[tuple[Loc, str]] = []
+    motor = config.motor
+    if sweep.start_deg == sweep.stop_deg:
+        errors.append((("stop_deg",), "sweep start_deg and stop_deg must differ"))
+        return errors
+    if sweep.speed_deg_s > motor.max_velocity_deg_s:
+        errors.append(
+            (
+                ("speed_deg_s",),
+                f"{sweep.speed_deg_s:g} deg/s exceeds the motor's maximum speed "
+                f"{motor.max_velocity_deg_s:g} deg/s ([motor] max_velocity_deg_s)",
+            )
+        )
+    if sweep.acceleration_deg_s2 > motor.max_acceleration_deg_s2:
+        errors.append(
+            (
+                ("acceleration_deg_s2",),
+                f"{sweep.acceleration_deg_s2:g} deg/s^2 ([sweep] acceleration_deg_s2) exceeds the motor's maximum "
+                f"{motor.max_acceleration_deg_s2:g} deg/s^2 ([motor] max_acceleration_deg_s2)",
+            )
+        )
+    span = abs(sweep.stop_deg - sweep.start_deg)
+    if sweep.mode == "step" and sweep.step_deg > span:
+        errors.append((("step_deg",), f"a step of {sweep.step_deg:g} deg is wider than the sweep ({span:g} deg)"))
+    zero = math.degrees(config.calibration.motor_zero)
+    lo, hi = travel_deg(sweep)
+    low_field = "start_deg" if sweep.start_deg < sweep.stop_deg else "stop_deg"
+    high_field = "stop_deg" if low_field == "start_deg" else "start_deg"
+    how = (
+        f" (with the {run_up_deg(sweep.speed_deg_s, sweep.acceleration_deg_s2):g} deg run-up of "
+        f"{sweep.speed_deg_s:g} deg/s)"
+        if sweep.mode == "constant"
+        else ""
+    )
+    if lo + zero < motor.min_angle_deg:
+        errors.append(
+            (
+                (low_field,),
+                f"the sweep needs the shaft at {lo + zero:g} deg{how}, below the motor's travel limit "
+                f"{motor.min_angle_deg:g} deg ([motor] min_angle_deg)",
+            )
+        )
+    if hi + zero > motor.max_angle_deg:
+        errors.append(
+            (
+                (high_field,),
+                f"the sweep needs the shaft at {hi + zero:g} deg{how}, above the motor's travel limit "
+                f"{motor.max_angle_deg:g} deg ([motor] max_angle_deg)",
+            )
+        )
+    if not errors:
+        duration = planned_duration_s(sweep, min(APPROACH_SPEED_DEG_S, motor.max_velocity_deg_s))
+        if duration > config.sweep.max_duration_s:
+            field = "speed_deg_s" if sweep.mode == "constant" else "step_deg"
+            errors.append(
+                (
+                    (field,),
+                    f"the sweep would take {duration:.0f} s, more than [sweep] max_duration_s = "
+                    f"{config.sweep.max_duration_s:g} s (raise the speed or the step, or narrow the range)",
+                )
+            )
+    return errors
+
+
 def resolve_sweep(spec: SweepSpec, config: RigConfig) -> ResolvedSweep:
+    """The request's sweep with the rig's defaults filled in, checked against the rig
+    (:func:`check_sweep`); :class:`RequestFieldError` names the fields (``("sweep", name)``)."""
     d = config.sweep
     out = ResolvedSweep(
         start_deg=d.start_deg if spec.start_deg is None else spec.start_deg,
@@ -102,71 +256,109 @@ def resolve_sweep(spec: SweepSpec, config: RigConfig) -> ResolvedSweep:
         scans_per_step=d.scans_per_step if spec.scans_per_step is None else spec.scans_per_step,
         acceleration_deg_s2=d.acceleration_deg_s2,
     )
-    if out.start_deg == out.stop_deg:
-        raise ValueError("sweep start_deg and stop_deg must differ")
+    errors = check_sweep(out, config)
+    if errors:
+        raise RequestFieldError([(("sweep", *loc), msg) for loc, msg in errors])
     return out
 
 
-#: Speed of the approach move to the sweep's run-up point (``service.sweep.SweepPlan.approach_speed``).
-APPROACH_SPEED_DEG_S = 30.0
+def check_cron(cron: str) -> str:
+    """A 5-field cron expression (UTC) that fires: the reason it is refused, else ``""``."""
+    from croniter import croniter
+
+    if len(cron.split()) != 5:
+        return f"a cron expression has exactly 5 fields (minute hour day month weekday), not {len(cron.split())}"
+    if not croniter.is_valid(cron):
+        return f"not a valid cron expression: {cron!r}"
+    try:
+        croniter(cron, datetime.now(UTC)).get_next(float)
+    except Exception:  # croniter's CroniterBadDateError and kin: no such date (30 February)
+        return f"the cron expression {cron!r} never fires (no such date)"
+    return ""
 
 
-def _move_time_s(distance_deg: float, speed_deg_s: float, acceleration_deg_s2: float) -> float:
-    """A point-to-point move of a trapezoidal profile (a triangle when too short to reach speed)."""
-    d = abs(distance_deg)
-    if d == 0.0:
-        return 0.0
-    ramp = speed_deg_s * speed_deg_s / acceleration_deg_s2  # distance of the two ramps together
-    if d >= ramp:
-        return d / speed_deg_s + speed_deg_s / acceleration_deg_s2
-    return 2.0 * math.sqrt(d / acceleration_deg_s2)
+def cron_min_interval_s(cron: str, firings: int = CRON_FIRINGS_CHECKED, below: float = math.inf) -> float:
+    """The shortest time between two of the next ``firings`` firings of ``cron`` within
+    :data:`CRON_HORIZON_S` (stops early at one shorter than ``below``); ``inf`` when fewer than
+    two are found."""
+    from croniter import croniter
 
-
-def planned_duration_s(sweep: ResolvedSweep, config: RigConfig, start_from_deg: float | None = None) -> float:
-    """Planned motion time of a sweep (s), to compare with ``[sweep] max_duration_s``.
-
-    Constant speed: the move from ``start - run_up`` to ``stop + run_up`` (``run_up = v^2 / 2a +
-    0.5 deg``, as :attr:`service.sweep.SweepPlan.run_up`). Step-and-scan: one move per step plus
-    the dwell of ``scans_per_step + 1`` scan periods and 50 ms at each stop (as
-    :func:`service.sweep.run_sweep`). The approach (at 30 deg/s) is included only when
-    ``start_from_deg`` (the beta the motor starts from) is given: the motor's position is known
-    at run time only. Scanner run-out, mapping and the fit are not included.
-    """
-    v, a = sweep.speed_deg_s, sweep.acceleration_deg_s2
-    direction = 1.0 if sweep.stop_deg > sweep.start_deg else -1.0
-    span = abs(sweep.stop_deg - sweep.start_deg)
-    if sweep.mode == "constant":
-        run_up = v * v / (2.0 * a) + 0.5
-        first = sweep.start_deg - direction * run_up
-        t = _move_time_s(span + 2.0 * run_up, v, a)
-    else:
-        first = sweep.start_deg
-        n = math.floor(span / sweep.step_deg + 1e-9) + 1
-        dwell = 0.05 + (sweep.scans_per_step + 1) / float(config.scanner.scan_frequency_hz)
-        t = (n - 1) * _move_time_s(sweep.step_deg, v, a) + n * dwell
-    if start_from_deg is not None:
-        t += _move_time_s(first - start_from_deg, APPROACH_SPEED_DEG_S, a)
-    return t
+    it = croniter(cron, datetime.now(UTC))
+    shortest = math.inf
+    try:
+        prev = first = float(it.get_next(float))
+        for _ in range(firings - 1):
+            t = float(it.get_next(float))
+            if t - first > CRON_HORIZON_S:
+                break
+            shortest = min(shortest, t - prev)
+            if shortest < below:
+                break
+            prev = t
+    except Exception:  # no further date (a pattern that fires a few times only)
+        pass
+    return shortest
 
 
 class ScheduleRequest(_Strict):
     """A schedule: a cron expression (UTC) or an interval, and the measurement to run."""
 
     name: str = Field(default="", max_length=200)
-    cron: str | None = Field(default=None, description="5-field cron expression, UTC, e.g. '0 */2 * * *'")
-    interval_s: float | None = Field(default=None, ge=1.0, le=366 * 86400.0)
+    cron: str | None = Field(
+        default=None,
+        min_length=9,
+        max_length=CRON_MAX_LENGTH,
+        json_schema_extra={"pattern": CRON_PATTERN},  # checked by _cron_fires, with a clearer message
+        examples=["0 */2 * * *", "30 6 * * 1-5"],
+        description="5-field cron expression, UTC, e.g. '0 */2 * * *'; it must fire, and not more often than "
+        "the rig's [schedules] min_interval_s",
+    )
+    interval_s: float | None = Field(
+        default=None, ge=1.0, le=366 * 86400.0, description="at least the rig's [schedules] min_interval_s"
+    )
     measurement: MeasurementRequest
+
+    @field_validator("cron")
+    @classmethod
+    def _cron_fires(cls, v: str | None) -> str | None:
+        if v is not None:
+            reason = check_cron(v)
+            if reason:
+                raise ValueError(reason)
+        return v
 
     @model_validator(mode="after")
     def _one_trigger(self) -> ScheduleRequest:
         if (self.cron is None) == (self.interval_s is None):
             raise ValueError("give exactly one of cron or interval_s")
-        if self.cron is not None:
-            from croniter import croniter
-
-            if not croniter.is_valid(self.cron):
-                raise ValueError(f"not a valid cron expression: {self.cron!r}")
         return self
+
+
+def check_schedule(req: ScheduleRequest, config: RigConfig) -> None:
+    """Check a schedule against the rig: its measurement's sweep (:func:`resolve_sweep`) and the
+    minimum interval between firings; :class:`RequestFieldError` names the fields."""
+    errors: list[tuple[Loc, str]] = []
+    try:
+        resolve_sweep(req.measurement.sweep, config)
+    except RequestFieldError as exc:
+        errors += exc.under("measurement").errors
+    least = config.schedules.min_interval_s
+    if req.interval_s is not None and req.interval_s < least:
+        errors.append(
+            (("interval_s",), f"{req.interval_s:g} s is shorter than [schedules] min_interval_s = {least:g} s")
+        )
+    if req.cron is not None and least > 60.0:  # five fields fire at most once a minute
+        shortest = cron_min_interval_s(req.cron, below=least)
+        if shortest < least:
+            errors.append(
+                (
+                    ("cron",),
+                    f"{req.cron!r} fires {shortest:g} s apart, more often than "
+                    f"[schedules] min_interval_s = {least:g} s",
+                )
+            )
+    if errors:
+        raise RequestFieldError(errors)
 
 
 class MeasurementOut(BaseModel):

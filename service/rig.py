@@ -35,8 +35,8 @@ from service import fitting, mcaplog
 from service.config import RigConfig
 from service.errors import ServiceError
 from service.jobs import Cancelled, JobContext
-from service.models import MeasurementRequest, ResolvedSweep, resolve_sweep
-from service.sweep import MappedSweep, SweepError, SweepPlan, SweepRecorder, run_sweep
+from service.models import APPROACH_SPEED_DEG_S, MeasurementRequest, ResolvedSweep, resolve_sweep
+from service.sweep import MappedSweep, MotionLimits, SweepError, SweepPlan, SweepRecorder, run_sweep
 
 log = logging.getLogger(__name__)
 
@@ -134,7 +134,7 @@ def write_ply(path: Path, mapped: MappedSweep) -> None:
     tmp.replace(path)
 
 
-def plan_from(sweep: ResolvedSweep) -> SweepPlan:
+def plan_from(sweep: ResolvedSweep, approach_speed_deg_s: float = APPROACH_SPEED_DEG_S) -> SweepPlan:
     return SweepPlan(
         start=math.radians(sweep.start_deg),
         stop=math.radians(sweep.stop_deg),
@@ -143,6 +143,18 @@ def plan_from(sweep: ResolvedSweep) -> SweepPlan:
         mode=sweep.mode,
         step=math.radians(sweep.step_deg),
         scans_per_step=sweep.scans_per_step,
+        approach_speed=math.radians(approach_speed_deg_s),
+    )
+
+
+def motion_limits(config: RigConfig) -> MotionLimits:
+    """The ``[motor]`` limits as :func:`service.sweep.run_sweep` checks them (rad, rad/s, rad/s^2)."""
+    m = config.motor
+    return MotionLimits(
+        min_angle=math.radians(m.min_angle_deg),
+        max_angle=math.radians(m.max_angle_deg),
+        max_speed=math.radians(m.max_velocity_deg_s),
+        max_acceleration=math.radians(m.max_acceleration_deg_s2),
     )
 
 
@@ -302,7 +314,9 @@ class Rig:
                 self.scanner_url, self.motor_url = self.sim.scanner_url, self.sim.motor_url
             assert self.scanner_url is not None and self.motor_url is not None
             self.scanner = open_scanner(self.scanner_url)
-            self.motor = open_device("motor", self.motor_url)
+            # the [motor] limits go to the driver too: it refuses targets beyond them and writes
+            # them to the drive (a CiA 402 drive's software position limits)
+            self.motor = open_device("motor", self.motor_url, config=cfg.motor.drive_config())
             self._configure_scanner()
             if self.fit_process:
                 self._start_fit_pool()
@@ -455,11 +469,11 @@ class Rig:
         try:
             sweep = resolve_sweep(req.sweep, cfg)
         except ValueError as exc:
-            raise ServiceError(f"sweep: {exc}") from None
+            raise ServiceError(f"the request does not fit this rig: {exc}") from None
         fault = self.motor.fault()
         if fault is not None:
             raise SweepError(f"motor is faulted before the sweep: {fault.reason} (0x{fault.code:04X}); reset it first")
-        plan = plan_from(sweep)
+        plan = plan_from(sweep, min(APPROACH_SPEED_DEG_S, cfg.motor.max_velocity_deg_s))
         offset_ns = time.time_ns() - time.monotonic_ns()
 
         def clock_ns(t_monotonic: float) -> int:
@@ -513,6 +527,7 @@ class Rig:
                     cancelled=lambda: ctx.cancelled,
                     on_event=on_event,
                     max_duration_s=cfg.sweep.max_duration_s,
+                    limits=motion_limits(cfg),
                 )
             except BaseException as exc:
                 ctx.info["scans"] = {"received": recorder.gaps.received, "missing": recorder.gaps.missing}

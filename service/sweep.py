@@ -31,6 +31,7 @@ from numpy.typing import ArrayLike, NDArray
 from lrms.kinematics import RigCalibration, forward
 from service.errors import ServiceError
 from service.mcaplog import foxglove_time
+from service.models import APPROACH_SPEED_DEG_S, run_up_deg, step_dwell_s
 from service.timesync import ClockSync
 
 FloatArray = NDArray[np.float64]
@@ -40,6 +41,11 @@ IntArray = NDArray[np.int64]
 
 class SweepError(ServiceError):
     """A sweep could not be run or mapped (device fault, no data, bad parameters)."""
+
+
+class TravelLimitError(SweepError):
+    """A sweep would command the drive beyond the rig's travel limits, maximum speed or
+    acceleration; raised before the command is sent."""
 
 
 # -- records ------------------------------------------------------------------------------
@@ -387,7 +393,7 @@ class SweepPlan:
     mode: str = "constant"
     step: float = math.radians(1.0)
     scans_per_step: int = 1
-    approach_speed: float = math.radians(30.0)
+    approach_speed: float = math.radians(APPROACH_SPEED_DEG_S)
 
     @property
     def direction(self) -> float:
@@ -396,7 +402,7 @@ class SweepPlan:
     @property
     def run_up(self) -> float:
         """Extra travel before ``start`` and after ``stop`` to be at constant speed over the window."""
-        return self.speed * self.speed / (2.0 * self.acceleration) + math.radians(0.5)
+        return math.radians(run_up_deg(math.degrees(self.speed), math.degrees(self.acceleration)))
 
     def beta_window(self) -> tuple[float, float]:
         return (min(self.start, self.stop), max(self.start, self.stop))
@@ -404,6 +410,54 @@ class SweepPlan:
     def step_targets(self) -> FloatArray:
         n = math.floor(abs(self.stop - self.start) / self.step + 1e-9) + 1
         return np.asarray(self.start + self.direction * self.step * np.arange(n), dtype=np.float64)
+
+    def approach_target(self) -> float:
+        """Beta of the approach's end: ``start`` less the run-up (constant mode) or ``start``."""
+        return self.start - self.direction * (self.run_up if self.mode == "constant" else 0.0)
+
+    def targets(self) -> list[tuple[float, float]]:
+        """Every move of the sweep in order, as (beta, speed): the approach, then the sweep to
+        ``stop`` plus the run-up, or to each step."""
+        moves = [(self.approach_target(), self.approach_speed)]
+        if self.mode == "constant":
+            moves.append((self.stop + self.direction * self.run_up, self.speed))
+        else:
+            moves += [(float(t), self.speed) for t in self.step_targets()]
+        return moves
+
+
+@dataclass(frozen=True)
+class MotionLimits:
+    """What the drive may be commanded: shaft angles (drive frame, rad), speed (rad/s) and
+    acceleration (rad/s^2) at the output shaft (the rig's ``[motor]`` limits)."""
+
+    min_angle: float
+    max_angle: float
+    max_speed: float
+    max_acceleration: float
+
+    def check(self, motor_angle: float, speed: float, acceleration: float) -> None:
+        """Raise :class:`TravelLimitError` unless the move is within the limits."""
+        if not math.isfinite(motor_angle) or not self.min_angle <= motor_angle <= self.max_angle:
+            raise TravelLimitError(
+                f"refusing to move the shaft to {math.degrees(motor_angle):.3f} deg: outside the travel limits "
+                f"[{math.degrees(self.min_angle):g}, {math.degrees(self.max_angle):g}] deg"
+            )
+        if not 0.0 < speed <= self.max_speed:
+            raise TravelLimitError(
+                f"refusing to move at {math.degrees(speed):g} deg/s: the motor's maximum is "
+                f"{math.degrees(self.max_speed):g} deg/s"
+            )
+        if not 0.0 < acceleration <= self.max_acceleration:
+            raise TravelLimitError(
+                f"refusing to accelerate at {math.degrees(acceleration):g} deg/s^2: the motor's maximum is "
+                f"{math.degrees(self.max_acceleration):g} deg/s^2"
+            )
+
+    def check_plan(self, plan: SweepPlan, calibration: RigCalibration) -> None:
+        """Every move of ``plan`` (:meth:`SweepPlan.targets`), before any is commanded."""
+        for beta, speed in plan.targets():
+            self.check(float(calibration.motor_angle(beta)), speed, plan.acceleration)
 
 
 class _Motion(threading.Thread):
@@ -464,6 +518,7 @@ def run_sweep(
     scan_silence_s: float = 3.0,
     motion_timeout_s: float | None = None,
     max_duration_s: float | None = None,
+    limits: MotionLimits | None = None,
 ) -> SweepOutcome:
     """Run one sweep: approach, then sweep (constant speed or step-and-scan), recording all along.
 
@@ -474,10 +529,14 @@ def run_sweep(
     and scanner silence. On *any* error the motor is stopped (quick stop) before the error is
     raised; the caller records the reason. A sweep still running ``max_duration_s`` after it began
     (approach included) fails with ``exceeded max duration N s`` (checked at least every 0.1 s).
+    With ``limits``, every move of the plan is checked before the motor is enabled, and each one
+    again before it is commanded (:class:`TravelLimitError`).
     """
     from drivers.errors import DeviceTimeoutError
 
     cal = recorder.calibration
+    if limits is not None:
+        limits.check_plan(plan, cal)
     report = progress or (lambda f, m: None)
     is_cancelled = cancelled or (lambda: False)
     emit = on_event or (lambda kind, data: None)
@@ -494,42 +553,27 @@ def run_sweep(
             t_ns = np.rint(np.asarray(arr.t_host_s, dtype=np.float64) * 1e9).astype(np.int64) + clock_ns(0.0)
             recorder.add_motor_batch(t_ns, arr.position_rad, arr.velocity_rad_s)
 
+    def move(beta: float, speed: float) -> None:
+        target = float(cal.motor_angle(beta))
+        if limits is not None:
+            limits.check(target, speed, plan.acceleration)
+        motor.move_to(target, velocity=speed, acceleration=plan.acceleration, wait=True, timeout=motion_timeout_s)
+
     def motion() -> None:
-        pre = plan.start - plan.direction * (plan.run_up if plan.mode == "constant" else 0.0)
-        motor.move_to(
-            float(cal.motor_angle(pre)),
-            velocity=plan.approach_speed,
-            acceleration=plan.acceleration,
-            wait=True,
-            timeout=motion_timeout_s,
-        )
+        move(plan.approach_target(), plan.approach_speed)
         if abort.is_set():
             return
         phase[0] = "sweep"
         sweep_t[0] = clock_ns(time.monotonic())
         emit("sweep_start", {"time": foxglove_time(sweep_t[0])})
         if plan.mode == "constant":
-            post = plan.stop + plan.direction * plan.run_up
-            motor.move_to(
-                float(cal.motor_angle(post)),
-                velocity=plan.speed,
-                acceleration=plan.acceleration,
-                wait=True,
-                timeout=motion_timeout_s,
-            )
+            move(plan.stop + plan.direction * plan.run_up, plan.speed)
         else:
             for target in plan.step_targets():
                 if abort.is_set():
                     return
-                motor.move_to(
-                    float(cal.motor_angle(target)),
-                    velocity=plan.speed,
-                    acceleration=plan.acceleration,
-                    wait=True,
-                    timeout=motion_timeout_s,
-                )
-                f = recorder.scan_frequency_hz or 25.0
-                if abort.wait(0.05 + (plan.scans_per_step + 1) / f):
+                move(float(target), plan.speed)
+                if abort.wait(step_dwell_s(plan.scans_per_step, recorder.scan_frequency_hz or 25.0)):
                     return
         sweep_t[1] = clock_ns(time.monotonic())
         emit("sweep_end", {"time": foxglove_time(sweep_t[1])})
@@ -616,7 +660,8 @@ def run_sweep(
     except BaseException as exc:
         abort.set()
         stop_error = stop_motor(motor)
-        mover.join(5.0)
+        if mover.ident is not None:  # started (enabling the motor may have failed before it was)
+            mover.join(5.0)
         with contextlib.suppress(Exception):
             pull_motor()
         reason = str(exc) or type(exc).__name__

@@ -2,34 +2,30 @@
 
 :class:`Service` (service.api.core) bundles what the routes need (config, store, job runner,
 scheduler, metrics and the rig's description); :func:`create_app` builds the app around one, from
-one router module per resource (service.api.routes), and holds the error handlers and the
-middleware: request counting outermost, then the body guard (token of a POST/PUT/PATCH and the
-body size, decided before the body is read: service.api.guard). The docs pages are served from
-local assets (service.api.docs). The app starts the job runner and the scheduler when it starts serving and
-stops them on shutdown.
+one router module per resource (service.api.routes), with the error handlers of
+service.api.errors and the middleware: request counting outermost, then the body guard (token of
+a POST/PUT/PATCH and the body size, decided before the body is read: service.api.guard). The docs
+pages are served from local assets (service.api.docs). The app starts the job runner and the
+scheduler when it starts serving and stops them on shutdown.
 """
 
 from __future__ import annotations
 
 import asyncio
-import json
 import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
 
-from fastapi import FastAPI, Request
-from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi import FastAPI
 
 from lrms import __version__
 from service.api.core import Service
 from service.api.docs import mount_docs
+from service.api.errors import install_handlers
 from service.api.guard import BodyGuard
 from service.api.routes import measurements, ops, rig, schedules
-from service.errors import ServiceError
-from service.jobs import Metrics, QueueFull
-from service.store import NotFound, StoreError
+from service.jobs import Metrics
 
 __all__ = ["Service", "create_app"]
 
@@ -67,40 +63,11 @@ def create_app(service: Service, manage_lifecycle: bool = True) -> FastAPI:
         lifespan=lifespan,
         docs_url=None,  # mount_docs: Swagger UI and ReDoc from local assets, not a CDN
         redoc_url=None,
+        generate_unique_id_function=lambda route: route.name,  # operationId = the route function's name
     )
     app.state.service = service
 
-    # -- errors ---------------------------------------------------------------------------
-    @app.exception_handler(RequestValidationError)
-    async def _validation(request: Request, exc: RequestValidationError) -> JSONResponse:
-        errors = exc.errors()
-        parts = []
-        for e in errors:
-            loc = ".".join(str(x) for x in e.get("loc", ()))
-            parts.append(f"{loc}: {str(e.get('msg', '')).removeprefix('Value error, ')}")
-        return JSONResponse(
-            status_code=422,
-            content={"message": "; ".join(parts), "detail": json.loads(json.dumps(errors, default=str))},
-        )
-
-    @app.exception_handler(NotFound)
-    async def _not_found(request: Request, exc: NotFound) -> JSONResponse:
-        return JSONResponse(status_code=404, content={"detail": str(exc)})
-
-    @app.exception_handler(StoreError)
-    async def _conflict(request: Request, exc: StoreError) -> JSONResponse:
-        return JSONResponse(status_code=409, content={"detail": str(exc)})
-
-    @app.exception_handler(QueueFull)
-    async def _queue_full(request: Request, exc: QueueFull) -> JSONResponse:
-        return JSONResponse(
-            status_code=429, content={"detail": str(exc)}, headers={"Retry-After": str(exc.retry_after_s)}
-        )
-
-    @app.exception_handler(ServiceError)
-    async def _bad(request: Request, exc: ServiceError) -> JSONResponse:
-        return JSONResponse(status_code=400, content={"detail": str(exc)})
-
+    install_handlers(app)  # every error body as documented (service.api.errors)
     app.include_router(ops.router)
     for module in (rig, measurements, schedules):
         app.include_router(module.router, prefix="/api/v1")

@@ -10,7 +10,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from fastapi import Response
+from fastapi.responses import JSONResponse
 
 from service.config import RigConfig
 from service.jobs import JobRunner, MeasureFn, Metrics, ProgressHub
@@ -21,10 +21,14 @@ from service.store import Store
 RigInfo = Callable[[], dict[str, Any]]
 
 
-class JsonBytes(Response):
-    """A response whose body is JSON already serialised (cached or built by pydantic)."""
+class JsonBytes(JSONResponse):
+    """A response whose body is JSON already serialised (cached or built by pydantic). A
+    ``JSONResponse`` to FastAPI, so a route's ``response_model`` is its documented body."""
 
-    media_type = "application/json"
+    def render(self, content: Any) -> bytes:
+        if not isinstance(content, bytes):
+            raise TypeError(f"JsonBytes takes serialised JSON (bytes), not {type(content).__name__}")
+        return content
 
 
 @dataclass
@@ -34,6 +38,8 @@ class RigLive:
     read_at: float = -1e9
     info: dict[str, Any] = field(default_factory=dict)
     lock: asyncio.Lock = field(default_factory=asyncio.Lock)
+    body: tuple[tuple[float, bool, bool], bytes] | None = None
+    """The serialised ``GET /rig`` body and what it was built from (reading time, token, busy)."""
 
 
 class ResponseCache:
@@ -130,7 +136,10 @@ def expected_duration_s(req: MeasurementRequest, config: RigConfig) -> float:
     """A guess of a measurement's wall time before any has finished: its planned sweep plus 10 s
     (approach, run-out, mapping and fit)."""
     try:
-        return planned_duration_s(resolve_sweep(req.sweep, config), config) + 10.0
+        return (
+            planned_duration_s(resolve_sweep(req.sweep, config), scan_frequency_hz=config.scanner.scan_frequency_hz)
+            + 10.0
+        )
     except ValueError:
         return 60.0
 

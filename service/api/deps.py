@@ -7,13 +7,14 @@ least that role (:mod:`service.api.auth`); ``READ`` passes everyone when ``[auth
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from typing import Annotated
 
 from fastapi import Depends, HTTPException, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.api import auth
 from service.api.core import Service
+from service.api.errors import responses
 from service.config import Role
 
 _bearer = HTTPBearer(auto_error=False)
@@ -52,25 +53,8 @@ def require_admin(service: ServiceDep, creds: Credentials) -> None:
     _require(service, creds, "admin")
 
 
-def _error(description: str) -> dict[str, Any]:
-    return {
-        "description": description,
-        "content": {
-            "application/json": {
-                "schema": {"type": "object", "properties": {"detail": {"type": "string"}}, "required": ["detail"]}
-            }
-        },
-    }
-
-
-_401 = _error("missing or invalid bearer token")
-_403 = _error("the token's role may not do this, or no token of the needed role is configured")
-_413 = _error("request body larger than [api] max_body_bytes")
-
 READ = [Depends(require_read)]
 OPERATE = [Depends(require_operator)]
 ADMIN = [Depends(require_admin)]
-WRITE = OPERATE
-"""Deprecated name of ``OPERATE``."""
-READ_RESPONSES: dict[int | str, dict[str, Any]] = {401: _401, 403: _403}
-WRITE_RESPONSES: dict[int | str, dict[str, Any]] = {401: _401, 403: _403, 413: _413}
+READ_RESPONSES = responses(401, 403)
+WRITE_RESPONSES = responses(401, 403, 413)

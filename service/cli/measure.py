@@ -42,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
 
     from service.config import load_config
     from service.errors import ServiceError
-    from service.models import MeasurementRequest
+    from service.models import MeasurementRequest, resolve_sweep
     from service.rig import build_service
 
     sweep = {
@@ -63,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise ServiceError(f"bad measurement request: {exc}") from None
     cfg = load_config(args.config, storage_dir=args.data)
+    resolve_sweep(request.sweep, cfg)  # against the rig's limits before it is opened (RequestFieldError)
     svc, rig = build_service(cfg)
     try:
         svc.start()

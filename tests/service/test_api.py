@@ -50,8 +50,8 @@ class GatedMeasure:
 
 def _config(tmp_path: Path, token: str | None = TOKEN) -> Any:
     """Reads open (the role checks are in test_security.py); ``token`` is the admin token (it may
-    do everything)."""
-    text = f"[sim]\n[storage]\ndir = '{tmp_path / 'data'}'\n[auth]\nread = 'open'\n"
+    do everything). Schedules may fire every second here (the default minimum interval is 60 s)."""
+    text = f"[sim]\n[storage]\ndir = '{tmp_path / 'data'}'\n[schedules]\nmin_interval_s = 1\n[auth]\nread = 'open'\n"
     if token is not None:
         text += f"admin_token = '{token}'\n"
     return parse_toml(text)
@@ -236,8 +236,8 @@ def test_persistence_and_queued_work_resume_after_restart(tmp_path: Path, monkey
 
 def test_schedules_fire_and_can_be_deleted(served: tuple[httpx.Client, GatedMeasure, Service]) -> None:
     client, measure, _ = served
-    r = client.post("/api/v1/schedules", json={"cron": "not a cron", "measurement": CYL}, headers=AUTH)
-    assert r.status_code == 422 and "not a valid cron" in r.json()["message"]
+    r = client.post("/api/v1/schedules", json={"cron": "61 * * * *", "measurement": CYL}, headers=AUTH)
+    assert r.status_code == 422 and "body.cron: not a valid cron" in r.json()["message"]
     r = client.post("/api/v1/schedules", json={"cron": "* * * * *", "interval_s": 5, "measurement": CYL}, headers=AUTH)
     assert r.status_code == 422 and "exactly one" in r.json()["message"]
     r = client.post("/api/v1/schedules", json={"interval_s": 0.5, "measurement": CYL}, headers=AUTH)

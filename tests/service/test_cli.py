@@ -69,6 +69,18 @@ def test_bad_config_and_bad_replay_file_are_one_line_errors(tmp_path: Path) -> N
         timeout=60,
     )
     assert proc.returncode == 1 and proc.stderr.startswith("error: ") and "sweep.speed_deg_s" in proc.stderr
+    # a sweep beyond the rig's [motor] limits is refused before the rig is opened
+    proc = subprocess.run(
+        [*LRMS, "measure", "--target", "cylinder", "--speed", "100", "--data", str(tmp_path / "data")],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 1 and proc.stderr.strip() == (
+        "error: sweep.speed_deg_s: 100 deg/s exceeds the motor's maximum speed 90 deg/s ([motor] max_velocity_deg_s)"
+    )
+    assert not (tmp_path / "data").exists()
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(b"nope")
     proc = subprocess.run([*LRMS, "replay", str(junk)], cwd=REPO, capture_output=True, text=True, timeout=60)

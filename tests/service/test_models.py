@@ -18,7 +18,7 @@ def test_elbow_options_are_accepted_for_an_elbow() -> None:
 @pytest.mark.parametrize(
     ("options", "message"),
     [
-        ({"degree_deg": 0}, "greater than 0"),
+        ({"degree_deg": 0}, "greater than or equal to 1"),
         ({"degree_deg": 200}, "less than or equal to 180"),
         ({"ratio": 0.3}, "greater than or equal to 0.5"),
         ({"flange": "maybe"}, "valid boolean"),

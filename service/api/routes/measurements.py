@@ -4,20 +4,32 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 from collections.abc import AsyncIterator
-from typing import Annotated
+from typing import Annotated, Literal
 
-from fastapi import APIRouter, HTTPException, Query, Request, Response, status
+from fastapi import APIRouter, HTTPException, Path, Query, Request, Response, status
 from fastapi.responses import FileResponse, StreamingResponse
 from pydantic import TypeAdapter
 
 from service.api.core import JsonBytes, Service
-from service.api.deps import OPERATE, READ, READ_RESPONSES, WRITE_RESPONSES, ServiceDep
+from service.api.deps import OPERATE, READ, READ_RESPONSES, ServiceDep
+from service.api.errors import responses
+from service.errors import RequestFieldError
 from service.models import MeasurementOut, MeasurementRequest, resolve_sweep
-from service.store import FINAL_STATES, STATES, Measurement
+from service.store import FINAL_STATES, Measurement
 
 router = APIRouter(prefix="/measurements", tags=["measurements"], dependencies=READ, responses=READ_RESPONSES)
 _MEASUREMENTS = TypeAdapter(list[MeasurementOut])
+
+#: The largest ``offset`` of a listing (a store holds far fewer; SQLite's integers end at 2^63).
+MAX_OFFSET = 1_000_000_000
+#: The largest ``limit`` (page size) of a listing.
+MAX_LIMIT = 1000
+#: Ids are 16 hex digits; longer path segments are refused before the store is asked.
+ID_MAX_LENGTH = 64
+
+MeasurementId = Annotated[str, Path(min_length=1, max_length=ID_MAX_LENGTH, description="measurement id")]
 
 
 def measurement_out(m: Measurement) -> MeasurementOut:
@@ -44,13 +56,15 @@ def measurement_out(m: Measurement) -> MeasurementOut:
     status_code=status.HTTP_202_ACCEPTED,
     response_model=MeasurementOut,
     dependencies=OPERATE,
-    responses=WRITE_RESPONSES,
+    responses=responses(400, 401, 403, 413, 422, 429),
 )
 def create_measurement(req: MeasurementRequest, response: Response, service: ServiceDep) -> MeasurementOut:
+    """Queue a measurement. The sweep is checked against the rig (travel limits with the run-up,
+    maximum speed, ``[sweep] max_duration_s``); a refusal is a 422 naming the field."""
     try:
         resolve_sweep(req.sweep, service.config)
-    except ValueError as exc:
-        raise HTTPException(422, f"sweep: {exc}") from None
+    except RequestFieldError as exc:
+        raise exc.under("body") from None
     if service.validate is not None:
         service.validate(req)
     m = service.runner.submit(req)
@@ -58,15 +72,14 @@ def create_measurement(req: MeasurementRequest, response: Response, service: Ser
     return measurement_out(m)
 
 
-@router.get("", response_model=list[MeasurementOut])
+@router.get("", response_model=list[MeasurementOut], responses=responses(422))
 async def list_measurements(
     service: ServiceDep,
-    state: Annotated[str | None, Query(description=f"one of {', '.join(STATES)}")] = None,
-    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    state: Annotated[Literal["queued", "running", "done", "failed", "cancelled"] | None, Query()] = None,
+    limit: Annotated[int, Query(ge=1, le=MAX_LIMIT, description="page size")] = 100,
+    offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0,
 ) -> Response:
-    if state is not None and state not in STATES:
-        raise HTTPException(422, f"unknown state {state!r}: expected one of {', '.join(STATES)}")
+    """Newest first."""
 
     def build() -> bytes:
         ms = service.store.list_measurements(state, limit, offset)
@@ -75,16 +88,21 @@ async def list_measurements(
     return JsonBytes(service.cache.get(f"list:{state}:{limit}:{offset}", build))
 
 
-@router.get("/{mid}", response_model=MeasurementOut)
-async def get_measurement(mid: str, service: ServiceDep) -> Response:
+@router.get("/{mid}", response_model=MeasurementOut, responses=responses(404, 422))
+async def get_measurement(mid: MeasurementId, service: ServiceDep) -> Response:
     def build() -> bytes:
         return measurement_out(service.store.get(mid)).model_dump_json().encode()
 
     return JsonBytes(service.cache.get(f"m:{mid}", build))
 
 
-@router.post("/{mid}/cancel", response_model=MeasurementOut, dependencies=OPERATE, responses=WRITE_RESPONSES)
-def cancel_measurement(mid: str, service: ServiceDep) -> MeasurementOut:
+@router.post(
+    "/{mid}/cancel",
+    response_model=MeasurementOut,
+    dependencies=OPERATE,
+    responses=responses(401, 403, 404, 409, 413, 422),
+)
+def cancel_measurement(mid: MeasurementId, service: ServiceDep) -> MeasurementOut:
     return measurement_out(service.runner.cancel(mid))
 
 
@@ -93,35 +111,39 @@ def _file(service: Service, mid: str, which: str) -> str:
     path = m.raw_path if which == "raw" else m.cloud_path
     if m.state not in FINAL_STATES:
         raise HTTPException(409, f"measurement {mid} is {m.state}: its {which} data is not complete yet")
+    # 404 is kept for an unknown id: a measurement that exists but has no such file (cancelled
+    # before it ran, failed before anything was recorded, the file removed from storage) is a 409
     if path is None:
-        raise HTTPException(404, f"measurement {mid} ({m.state}) has no {which} data")
+        raise HTTPException(409, f"measurement {mid} ({m.state}) has no {which} data")
+    if not os.path.isfile(path):
+        raise HTTPException(409, f"measurement {mid} ({m.state}): its {which} file is missing from storage")
     return path
 
 
 @router.get(
     "/{mid}/raw",
     response_class=FileResponse,
-    responses={200: {"content": {"application/x-mcap": {}}}},
+    responses={200: {"content": {"application/x-mcap": {}}}, **responses(404, 409, 422)},
 )
-def get_raw(mid: str, service: ServiceDep) -> FileResponse:
+def get_raw(mid: MeasurementId, service: ServiceDep) -> FileResponse:
     return FileResponse(_file(service, mid, "raw"), media_type="application/x-mcap", filename=f"{mid}.mcap")
 
 
 @router.get(
     "/{mid}/cloud",
     response_class=FileResponse,
-    responses={200: {"content": {"application/x-ply": {}}}},
+    responses={200: {"content": {"application/x-ply": {}}}, **responses(404, 409, 422)},
 )
-def get_cloud(mid: str, service: ServiceDep) -> FileResponse:
+def get_cloud(mid: MeasurementId, service: ServiceDep) -> FileResponse:
     return FileResponse(_file(service, mid, "cloud"), media_type="application/x-ply", filename=f"{mid}.ply")
 
 
 @router.get(
     "/{mid}/events",
     response_class=StreamingResponse,
-    responses={200: {"content": {"text/event-stream": {}}}},
+    responses={200: {"content": {"text/event-stream": {}}}, **responses(404, 422)},
 )
-async def events(mid: str, request: Request, service: ServiceDep) -> StreamingResponse:
+async def events(mid: MeasurementId, request: Request, service: ServiceDep) -> StreamingResponse:
     """Server-sent events: one ``progress`` event per change, the stream ends at a final state."""
     first = service.store.get(mid)  # 404 if unknown
 

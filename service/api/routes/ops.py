@@ -15,6 +15,8 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from lrms import __version__
 from service.api.core import JsonBytes
 from service.api.deps import READ, READ_RESPONSES, ServiceDep
+from service.api.errors import responses
+from service.api.schemas import HealthOut
 
 router = APIRouter(tags=["ops"])
 
@@ -22,7 +24,8 @@ router = APIRouter(tags=["ops"])
 @router.get(
     "/healthz",
     response_class=JsonBytes,
-    responses={503: {"description": "degraded: the rig cannot measure now (the reasons are in the body)"}},
+    response_model=HealthOut,
+    responses=responses(503, _503=HealthOut),
 )
 async def healthz(service: ServiceDep) -> Response:
     """``status`` ``ok`` (200) only when the rig process is alive and reporting, the drive is not
@@ -43,6 +46,11 @@ async def healthz(service: ServiceDep) -> Response:
     return JsonBytes(json.dumps(body).encode(), status_code=code)
 
 
-@router.get("/metrics", response_class=Response, dependencies=READ, responses=READ_RESPONSES)
+@router.get(
+    "/metrics",
+    response_class=Response,
+    dependencies=READ,
+    responses={200: {"content": {CONTENT_TYPE_LATEST.split(";")[0]: {"schema": {"type": "string"}}}}, **READ_RESPONSES},
+)
 def metrics(service: ServiceDep) -> Response:
     return Response(generate_latest(service.metrics.registry), media_type=CONTENT_TYPE_LATEST)

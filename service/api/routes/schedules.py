@@ -2,16 +2,23 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, HTTPException, Response
+from typing import Annotated
+
+from fastapi import APIRouter, Path, Response
 from pydantic import TypeAdapter
 
 from service.api.core import JsonBytes
-from service.api.deps import ADMIN, READ, READ_RESPONSES, WRITE_RESPONSES, ServiceDep
-from service.models import ScheduleOut, ScheduleRequest, resolve_sweep
+from service.api.deps import ADMIN, READ, READ_RESPONSES, ServiceDep
+from service.api.errors import responses
+from service.api.routes.measurements import ID_MAX_LENGTH
+from service.errors import RequestFieldError
+from service.models import ScheduleOut, ScheduleRequest, check_schedule
 from service.store import Schedule
 
 router = APIRouter(prefix="/schedules", tags=["schedules"], dependencies=READ, responses=READ_RESPONSES)
 _SCHEDULES = TypeAdapter(list[ScheduleOut])
+
+ScheduleId = Annotated[str, Path(min_length=1, max_length=ID_MAX_LENGTH, description="schedule id")]
 
 
 def schedule_out(s: Schedule) -> ScheduleOut:
@@ -27,12 +34,20 @@ def schedule_out(s: Schedule) -> ScheduleOut:
     )
 
 
-@router.post("", status_code=201, response_model=ScheduleOut, dependencies=ADMIN, responses=WRITE_RESPONSES)
+@router.post(
+    "",
+    status_code=201,
+    response_model=ScheduleOut,
+    dependencies=ADMIN,
+    responses=responses(400, 401, 403, 413, 422, 429),
+)
 def create_schedule(req: ScheduleRequest, service: ServiceDep) -> ScheduleOut:
+    """Add a schedule. Its measurement is checked against the rig as ``POST /measurements`` is,
+    and its firings must be at least ``[schedules] min_interval_s`` apart."""
     try:
-        resolve_sweep(req.measurement.sweep, service.config)
-    except ValueError as exc:
-        raise HTTPException(422, f"measurement.sweep: {exc}") from None
+        check_schedule(req, service.config)
+    except RequestFieldError as exc:
+        raise exc.under("body") from None
     return schedule_out(service.scheduler.add(req))
 
 
@@ -44,12 +59,18 @@ async def list_schedules(service: ServiceDep) -> Response:
     return JsonBytes(service.cache.get("schedules", build))
 
 
-@router.get("/{sid}", response_model=ScheduleOut)
-async def get_schedule(sid: str, service: ServiceDep) -> ScheduleOut:
+@router.get("/{sid}", response_model=ScheduleOut, responses=responses(404, 422))
+async def get_schedule(sid: ScheduleId, service: ServiceDep) -> ScheduleOut:
     return schedule_out(service.store.get_schedule(sid))
 
 
-@router.delete("/{sid}", status_code=204, dependencies=ADMIN)
-def delete_schedule(sid: str, service: ServiceDep) -> Response:
+@router.delete(
+    "/{sid}",
+    status_code=204,
+    dependencies=ADMIN,
+    response_class=Response,
+    responses=responses(401, 403, 404, 413, 422),
+)
+def delete_schedule(sid: ScheduleId, service: ServiceDep) -> Response:
     service.store.delete_schedule(sid)
     return Response(status_code=204)
