@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -30,6 +31,7 @@ import pytest
 
 from service import mcaplog, mcaprecovery
 from service.api import ServerThread, Service, create_app
+from service.api.core import expected_duration_s
 from service.config import TOKEN_ENV, parse_toml
 from service.models import MeasurementRequest, planned_duration_s, resolve_sweep
 from service.rig import build_service
@@ -267,7 +269,8 @@ def test_a_sweep_past_max_duration_is_stopped_and_fails(sim_rig: RigProcess, tmp
     approach counted from the sweep's far end), but the approach from the drive's rest at 0 deg
     (30 deg/s to beta ~73 deg) alone takes longer; the rig
     process stops the motor at 2 s and fails the measurement with the reason."""
-    extra = "[sweep]\nmax_duration_s = 2.0\n"
+    # the rig's default sweep must fit the limit too (a config whose defaults break it is refused)
+    extra = "[sweep]\nmax_duration_s = 2.0\nstart_deg = 70.0\nstop_deg = 60.0\nspeed_deg_s = 20.0\n"
     svc, rig, srv = _served(sim_rig, tmp_path, extra)
     req = {"target": "cylinder", "sweep": {"start_deg": 70.0, "stop_deg": 60.0, "speed_deg_s": 20.0}}
     cfg = svc.config
@@ -299,7 +302,10 @@ def test_a_full_queue_is_a_429_with_retry_after_and_due_schedules_are_skipped(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.delenv(TOKEN_ENV, raising=False)
-    text = f"[sim]\n[storage]\ndir = '{tmp_path / 'data'}'\n[auth]\ntoken = 't0ken'\n[jobs]\nmax_queued = 2\n"
+    text = (
+        f"[sim]\n[storage]\ndir = '{tmp_path / 'data'}'\n"
+        "[auth]\nadmin_token = 't0ken'\nread = 'open'\n[jobs]\nmax_queued = 2\n"
+    )
     measure = GatedMeasure()
     svc = Service(parse_toml(text), measure)
     auth = {"Authorization": "Bearer t0ken"}
@@ -315,7 +321,9 @@ def test_a_full_queue_is_a_429_with_retry_after_and_due_schedules_are_skipped(
             r = client.post("/api/v1/measurements", json={"target": "cylinder"}, headers=auth)
             assert r.status_code == 429 and "queue is full" in r.json()["detail"], r.text
             # no measurement has finished yet: the running one's planned sweep (about 10 s) + 10 s
-            assert 1 <= int(r.headers["Retry-After"]) <= 21, r.headers
+            # nothing has finished yet: the running one's planned sweep + 10 s, less the time it has run
+            expected = expected_duration_s(MeasurementRequest(target="cylinder"), svc.config)
+            assert 1 <= int(r.headers["Retry-After"]) <= math.ceil(expected), (r.headers, expected)
             assert client.get("/healthz").json()["queued"] == 2
             # a schedule coming due while the queue is full is skipped: last_run moves on, no measurement
             sched = {"name": "hourly", "interval_s": 3600, "measurement": {"target": "cylinder"}}
