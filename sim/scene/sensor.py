@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from lrms.kinematics import RigCalibration, beam_rays
+from lrms.kinematics import RigCalibration
 from sim.scene.scene import Scene
 from sim.scene.shapes import FloatArray, SceneError
 
@@ -127,11 +127,15 @@ def cast_beams(
     device_angles_rad: ArrayLike,
     motor_angles_rad: ArrayLike,
     rng: np.random.Generator | None = None,
+    motor_speed_rad_s: ArrayLike | None = None,
 ) -> BeamSamples:
     """Simulate samples for device beam angles and motor angles (broadcast against each other).
 
     Typical shapes: ``device_angles (M,)`` with ``motor_angles (S, 1)`` (one plane per scan) or
-    ``(S, M)`` (the plane turns during the scan). Without ``rng`` nothing is random.
+    ``(S, M)`` (the plane turns during the scan). Without ``rng`` nothing is random. The rig's
+    true geometry is ``calibration.rig`` (:class:`lrms.kinematics.RigModel`: range offset and
+    scale, tilts, zeros, ...); ``motor_speed_rad_s`` (broadcast like the angles) feeds its
+    backlash and time-offset terms.
     """
     dev, mot = np.broadcast_arrays(
         np.asarray(device_angles_rad, dtype=np.float64), np.asarray(motor_angles_rad, dtype=np.float64)
@@ -142,13 +146,12 @@ def cast_beams(
     d_alpha, d_beta = sensor.angle_noise(shape, rng)
     alpha = calibration.alpha(dev) + d_alpha
     beta = calibration.beta(mot) + d_beta
-    o_rig, d_rig = beam_rays(alpha.ravel(), beta.ravel(), calibration.p)
-    rot = calibration.world_from_rig[:3, :3]
-    origins = calibration.to_world(o_rig)
-    dirs = d_rig @ rot.T
+    speed = None if motor_speed_rad_s is None else np.broadcast_to(motor_speed_rad_s, shape).ravel()
+    origins, dirs = calibration.rays(alpha.ravel(), beta.ravel(), speed)  # the rig's true geometry (RigModel)
     hits = scene.raycast(origins, dirs)
     echo = hits.remission * hits.cos_incidence
-    ranges, valid = sensor.measure(hits.range, echo, rng)
+    # the scanner reports the true distance through its range offset and scale (RigModel.k0, k1)
+    ranges, valid = sensor.measure(calibration.rig.reported_range(hits.range), echo, rng)
     return BeamSamples(
         ranges=ranges.reshape(shape),
         valid=valid.reshape(shape),
@@ -248,5 +251,6 @@ def continuous_sweep_cloud(
     scans = int(np.floor(span / speed_rad_s / period)) + 1
     t = np.arange(scans)[:, None] * period + beam_times(len(dev), scan_frequency_hz, resolution_deg)[None, :]
     motor = motor_start_rad + direction * np.minimum(speed_rad_s * t, span)
-    samples = cast_beams(scene, calibration, sensor, dev, motor, rng)
+    omega = np.where(speed_rad_s * t < span, direction * speed_rad_s, 0.0)
+    samples = cast_beams(scene, calibration, sensor, dev, motor, rng, omega)
     return samples.points(calibration), samples
