@@ -87,18 +87,29 @@ def forward(l: ArrayLike, alpha: ArrayLike, beta: ArrayLike, p: float = DEFAULT_
     return out
 
 
-def inverse(xyz: ArrayLike, p: float = DEFAULT_P) -> tuple[FloatArray, FloatArray, FloatArray]:
+def inverse(
+    xyz: ArrayLike, p: float = DEFAULT_P, *, half_turn: bool = False
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Inverse of Eq. 1: rig-frame points ``(..., 3)`` to ``(l, alpha, beta)``.
 
-    The branch is chosen with ``l sin(alpha) + p >= 0`` (the point lies on the scanner's side of
-    the shaft), which holds for every point the rig can see beyond ``p`` from the shaft.
+    A point has two readings, ``beta`` and ``beta + pi`` (the scan plane's two halves). By
+    default the branch is chosen with ``l sin(alpha) + p >= 0`` (the point lies on the
+    scanner's side of the shaft). With ``half_turn`` it is chosen with ``beta`` in
+    ``[-pi/2, pi/2)``, which is the right one for every point of a sweep that stays within
+    +-90 deg (both halves of the 270 deg scan: points on either side of the shaft).
     """
     pts = np.asarray(xyz, dtype=np.float64)
     if pts.shape[-1] != 3:
         raise LrmsError(f"points must have shape (..., 3), got {pts.shape}")
     x, y, z = pts[..., 0], pts[..., 1], pts[..., 2]
-    beta = np.arctan2(z, x)
-    r = np.hypot(x, z)
+    if half_turn:
+        beta = np.arctan2(z, x)
+        flip = (beta >= np.pi / 2) | (beta < -np.pi / 2)
+        beta = np.where(flip, np.where(beta >= np.pi / 2, beta - np.pi, beta + np.pi), beta)
+        r = np.where(flip, -1.0, 1.0) * np.hypot(x, z)
+    else:
+        beta = np.arctan2(z, x)
+        r = np.hypot(x, z)
     s = r - p  # l sin(alpha)
     l = np.hypot(s, y)
     alpha = np.arctan2(s, y)

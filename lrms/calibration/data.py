@@ -74,11 +74,12 @@ class Observations:
     @classmethod
     def from_points(cls, xyz: ArrayLike, p: float = kinematics.DEFAULT_P, source: str = "") -> Observations:
         """Back from a cloud mapped with the nominal Eq. 1 (rig at the origin, inner parameter ``p``)
-        to its readings (:func:`lrms.kinematics.inverse`); the motor speed is unknown (0)."""
+        to its readings (:func:`lrms.kinematics.inverse` with ``half_turn``: the sweep stayed
+        within beta = +-90 deg); the motor speed is unknown (0)."""
         pts = np.asarray(xyz, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise CalibrationError(f"a cloud must have shape (N, 3), got {pts.shape}")
-        l, a, b = kinematics.inverse(pts, p)
+        l, a, b = kinematics.inverse(pts, p, half_turn=True)
         keep = l > 0
         return cls.from_raw(l[keep], a[keep], b[keep], None, source)
 
