@@ -25,6 +25,7 @@ COMMANDS: dict[tuple[str, ...], str] = {
     ("scan",): "service.cli.scan",
     ("motor",): "service.cli.motor",
     ("fit",): "service.cli.fit",
+    ("calibrate",): "service.cli.calibrate",
     ("register",): "service.cli.register",
     ("brackets",): "service.cli.brackets",
     ("serve",): "service.cli.serve",
