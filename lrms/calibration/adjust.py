@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import sparse
 
-from lrms.calibration.data import Artefact, CalibrationError, Observations
+from lrms.calibration.data import Artefact, CalibrationError, DetectionError, DistanceSpec, Observations
 from lrms.calibration.detect import PlaneSeg, SphereSeg
 from lrms.covariance import NoiseModel
 from lrms.kinematics import RigModel
@@ -83,6 +83,8 @@ HOLD_ORDER = ("time_offset", "backlash", "k1", "beta_scale", "k0", "q", "tilt_x"
 MIN_EIGENVALUE = 1.0
 #: Beams meeting a sphere at cos(incidence) below this are not used (silhouette: range and angle mix).
 MIN_COS = 0.3
+#: A surface needs this many usable beams to stay in the adjustment.
+MIN_SURFACE_BEAMS = 30
 
 
 @dataclass(frozen=True)
@@ -161,9 +163,9 @@ class Adjustment:
             sp.append(_Sphere(ss.index, ss.center.copy(), ss.radius, ss.artefact_index, spec.diameter_m / 2,
                               spec.u_diameter_m / 2))  # fmt: skip
         self.state = _State(nominal.vector(), pl, sp)
+        self.sphere_slot: dict[int, int] = {}
+        self.distances: list[DistanceSpec] = []
         self._trim_silhouettes()
-        self.sphere_slot = {s.artefact_index: k for k, s in enumerate(sp)}
-        self.distances = [d for d in artefact.distances if d.a in self.sphere_slot and d.b in self.sphere_slot]
         self._sigma: list[FloatArray] = []
         self.free: list[str] = [n for n in RigModel.NAMES if n not in STRUCTURAL]
 
@@ -403,6 +405,20 @@ class Adjustment:
         for surf in surfaces:
             _, _, cos, _, _ = self._los(self.state.rig, surf.index, surf)
             surf.index = surf.index[cos >= MIN_COS]
+        self._drop_thin()
+
+    def _drop_thin(self) -> None:
+        """Drop surfaces left with too few beams to carry their own parameters (and the sphere-bar
+        lengths of dropped spheres)."""
+        planes = [p for p in self.state.planes if p.index.size >= MIN_SURFACE_BEAMS]
+        spheres = [s for s in self.state.spheres if s.index.size >= MIN_SURFACE_BEAMS]
+        if not planes and not spheres:
+            raise DetectionError(
+                f"no surface keeps {MIN_SURFACE_BEAMS} usable beams (grazing beams and silhouettes are not used)"
+            )
+        self.state = _State(self.state.rig, planes, spheres)
+        self.sphere_slot = {sp.artefact_index: k for k, sp in enumerate(spheres)}
+        self.distances = [d for d in self.artefact.distances if d.a in self.sphere_slot and d.b in self.sphere_slot]
 
     def reject_outliers(self, names: list[str]) -> int:
         """Drop beams whose weighted residual exceeds ``outlier_sigma``; returns how many."""
@@ -424,7 +440,7 @@ class Adjustment:
         nm = (jac.T @ jac).toarray()
         nr = len(names)
         a, b, c = nm[:nr, :nr], nm[:nr, nr:], nm[nr:, nr:]
-        red = a - b @ np.linalg.solve(c, b.T) if c.size else a
+        red = a - b @ np.linalg.lstsq(c, b.T, rcond=None)[0] if c.size else a
         s = np.array([SPREAD[n] for n in names])
         return np.asarray(red * np.outer(s, s), dtype=np.float64)
 

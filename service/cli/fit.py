@@ -136,7 +136,7 @@ def fit_cylinder_file(args: argparse.Namespace, points: Any, calibration: Any = 
 
         cal, obs = calibration
         model = cal.model
-        o, d = model.rays(obs.l, obs.alpha, obs.beta)
+        o, d = model.rays(obs.alpha, obs.beta)
         perp = np.hypot(obs.l * noise.sigma_alpha, (obs.l * np.sin(obs.alpha) + model.p) * noise.sigma_beta)
         rays = Rays(o, d, model.geometric_range(obs.l), np.full(obs.l.size, noise.sigma_l), perp)
     core, fit, crit = cylinder_result(
