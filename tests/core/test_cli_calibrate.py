@@ -40,7 +40,9 @@ def test_calibrate_writes_a_calibration_that_fit_applies(
     files: dict[str, Path], capsys: pytest.CaptureFixture[str]
 ) -> None:
     out = files["dir"] / "cal.json"
-    assert main(["calibrate", str(files["room"]), "--artefact", str(files["artefact"]), "--out", str(out), "--json"]) == 0
+    assert (
+        main(["calibrate", str(files["room"]), "--artefact", str(files["artefact"]), "--out", str(out), "--json"]) == 0
+    )
     printed = json.loads(capsys.readouterr().out)
     stored = json.loads(out.read_text())
     assert printed["model"] == stored["model"]
@@ -52,7 +54,9 @@ def test_calibrate_writes_a_calibration_that_fit_applies(
     cal = k.RigCalibration(model=RIG)
     s = cast_beams(get_scene("seed003-bare"), cal, SensorModel.noiseless(), dev, mot)
     on = s.valid & (s.index == 0)
-    pts = k.forward(s.ranges[on], cal.alpha(np.broadcast_to(dev, on.shape)[on]), cal.beta(np.broadcast_to(mot, on.shape)[on]))
+    pts = k.forward(
+        s.ranges[on], cal.alpha(np.broadcast_to(dev, on.shape)[on]), cal.beta(np.broadcast_to(mot, on.shape)[on])
+    )
     part = files["dir"] / "part.xyz"
     write_xyz(part, pts)
     assert main(["fit", str(part), "--json"]) == 0
@@ -84,7 +88,7 @@ def test_bad_artefact_is_an_error_and_nothing_is_written(
     assert "diameter" in capsys.readouterr().err
     assert not out.exists()
     tiny = tmp_path / "tiny.xyz"
-    write_xyz(tiny, np.random.default_rng(0).normal(size=(100, 3)) + [0, 3, 0])
+    write_xyz(tiny, np.random.default_rng(0).normal(size=(100, 3)) + np.array([0.0, 3.0, 0.0]))
     assert main(["calibrate", str(tiny), "--artefact", str(files["artefact"]), "--out", str(out)]) == 1
     assert "at least" in capsys.readouterr().err
     assert not out.exists()
