@@ -72,9 +72,11 @@ ADVICE = {
     "tilt_x": "planes or spheres far along the motor axis and across it, seen over a wide motor sweep",
     "alpha_zero": "planes on both sides of the scan (floor and ceiling, or both side walls) over a wide motor sweep",
     "beta_scale": "planes seen over a wide range of motor angles (a sweep of 90 deg or more)",
-    "backlash": "sweeps in both motor directions, with the motor speed of every beam (an MCAP raw log)",
-    "time_offset": "sweeps at two different motor speeds (or both directions, with backlash held), with the motor "
-    "speed of every beam (an MCAP raw log)",
+    "backlash": "sweeps in both motor directions, with the motor speed of every beam (an MCAP raw log); with a "
+    "time offset too, three different signed speeds (e.g. +10, -10, +20 deg/s)",
+    "time_offset": "sweeps at different speeds in one direction (with backlash: three different signed speeds, "
+    "e.g. +10, -10, +20 deg/s), with the motor speed of every beam (an MCAP raw log); only the difference between "
+    "sweeps shows, a common angle is the motor zero",
 }
 #: Order in which parameters are held when the data cannot separate them (first = held first).
 HOLD_ORDER = ("time_offset", "backlash", "k1", "beta_scale", "k0", "q", "tilt_x", "alpha_zero", "p")

@@ -220,3 +220,25 @@ def test_half_turn_inverse_recovers_readings_on_both_sides_of_the_shaft() -> Non
     np.testing.assert_allclose(np.c_[l2, a2, b2], np.c_[l, a, b], atol=1e-9)
     obs = Observations.from_points(k.forward(l, a, b))
     np.testing.assert_allclose(obs.alpha, a, atol=1e-9)
+
+
+def test_two_sweeps_show_one_combination_of_backlash_and_time_offset() -> None:
+    """+10 deg/s and -20 deg/s: only -backlash + 30 deg/s x time_offset differs between the sweeps."""
+    rig = k.RigModel(k0=0.01, p=0.102, tilt_x=D(0.1), backlash=D(0.05), time_offset=0.004)
+    cal = k.RigCalibration(model=rig)
+    sweeps = []
+    for lo, hi, speed, seed in ((-90.0, 90.0, 10.0, 1), (90.0, -90.0, 20.0, 2)):
+        _, s = continuous_sweep_cloud(
+            get_scene("room-spheres"), cal, SensorModel(), D(lo), D(hi), D(speed), rng=np.random.default_rng(seed)
+        )
+        v = s.valid
+        moving = np.abs(s.motor_angle - D(lo)) < abs(D(hi - lo)) - 1e-12
+        omega = np.where(moving, np.sign(hi - lo) * D(speed), 0.0)
+        sweeps.append(
+            Observations.from_raw(s.ranges[v], cal.alpha(s.device_angle[v]), cal.beta(s.motor_angle[v]), omega[v])
+        )
+    res = calibrate(sweeps, Artefact.from_dict(room_spheres_artefact()), options=FAST)
+    assert "time_offset" in res.identifiability.held and "backlash" in res.estimated
+    assert "three different signed speeds" in res.identifiability.held["time_offset"]
+    combination = rig.backlash - D(30.0) * rig.time_offset  # what a free backlash alone must carry
+    assert abs(res.model.backlash - combination) < 3 * res.std()["backlash"]
