@@ -108,9 +108,12 @@ def main(argv: list[str] | None = None) -> int:
         res = calibrate(sweeps, art, options=opts)
         truth = rig.canonical()
         std = res.std()
+        worst = ("", 0.0)
         for name in res.estimated:
             errs.setdefault(name, []).append(getattr(res.model, name) - getattr(truth, name))
             stds.setdefault(name, []).append(std[name])
+            z = abs(errs[name][-1]) / std[name]
+            worst = (name, z) if z > worst[1] else worst
         posed = dataclasses.replace(res.model, beta_zero=truth.beta_zero)  # the rig's pose about the shaft
         seed = 10_000 + run
         d_ideal, a_ideal = part_fit(RigModel(), RigModel(), seed)
@@ -123,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"run {run:2d}: k0 {rig.k0 * 1e3:+6.1f} mm k1 {rig.k1 * 1e6:+6.0f} ppm  part dD before "
             f"{rows[-1][0] * 1e3:+6.2f} mm after {rows[-1][2] * 1e3:+6.3f} mm, axis before {rows[-1][1]:.3f} deg "
-            f"after {rows[-1][3]:.4f} deg  (s0^2 {rows[-1][4]:.3f})",
+            f"after {rows[-1][3]:.4f} deg  (s0^2 {rows[-1][4]:.3f}, worst {worst[0]} {worst[1]:.1f} std)",
             flush=True,
         )
     elapsed = time.perf_counter() - t0

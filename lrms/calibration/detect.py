@@ -3,7 +3,9 @@
 Planes: sequential RANSAC (:func:`lrms.ransac.ransac` with :class:`~lrms.ransac.PlaneModel`)
 with a loose threshold (a miscalibrated rig bends a wall by up to a few centimetres), largest
 first, until the next plane holds fewer than ``min_plane_points``; a plane whose points spread
-less than ``min_plane_extent_m`` (standard deviation along its second axis) is not taken. Spheres: the points that are
+less than ``min_plane_extent_m`` (standard deviation along its second axis), or whose points do
+not form one connected patch for the most part (neighbours within ``plane_gap_m``: the caps of
+spheres that happen to line up, strips of bent walls), is not taken. Spheres: the points that are
 on no plane are split into connected clusters (neighbours within ``cluster_gap_m``), a sphere
 is fitted to each cluster (algebraic, then geometric least squares), and a cluster is taken as
 the artefact's sphere whose radius is nearest, if the fitted radius is within
@@ -35,6 +37,7 @@ class DetectOptions:
     min_plane_points: int = 2000
     max_planes: int = 12
     min_plane_extent_m: float = 0.25
+    plane_gap_m: float = 0.25
     cluster_gap_m: float = 0.05
     min_sphere_points: int = 40
     radius_tolerance_m: float = 0.03
@@ -85,8 +88,21 @@ def detect_planes(points: FloatArray, opts: DetectOptions, rng: np.random.Genera
                            compute_uv=False)  # fmt: skip
         if sv[1] / np.sqrt(min(members.size, 5000)) < opts.min_plane_extent_m:
             continue
+        if not _mostly_connected(points[members], opts.plane_gap_m, rng):
+            continue  # caps of several spheres, or strips of other walls, that happen to line up
         planes.append(PlaneSeg(members, model.normal.copy(), float(model.offset)))
     return planes
+
+
+def _mostly_connected(pts: FloatArray, gap: float, rng: np.random.Generator, sample: int = 4000) -> bool:
+    """Whether half of a plane's points (a random subset of ``sample``) form one connected patch
+    (neighbours within ``gap``)."""
+    if pts.shape[0] > sample:
+        pts = pts[rng.choice(pts.shape[0], sample, replace=False)]
+    pairs = cKDTree(pts).query_pairs(gap, output_type="ndarray")
+    graph = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(pts), len(pts)))
+    _, labels = csgraph.connected_components(graph, directed=False)
+    return bool(np.bincount(labels).max() >= 0.5 * len(pts))
 
 
 def _fit_sphere(pts: FloatArray) -> tuple[FloatArray, float, float]:
