@@ -120,6 +120,13 @@ class _Sphere:
     u_radius: float
 
 
+def _distance(x: FloatArray, surf: _Plane | _Sphere) -> FloatArray:
+    """Orthogonal distances of points ``(N, 3)`` from a surface."""
+    if isinstance(surf, _Plane):
+        return np.asarray(np.abs(x @ surf.normal - surf.offset), dtype=np.float64)
+    return np.asarray(np.abs(np.linalg.norm(x - surf.center, axis=1) - surf.radius), dtype=np.float64)
+
+
 def _basis(n: FloatArray) -> FloatArray:
     a = np.eye(3)[int(np.argmin(np.abs(n)))]
     e1 = np.cross(n, a)
@@ -367,21 +374,27 @@ class Adjustment:
 
     def resegment(self, min_plane_points: int, max_sigma: float) -> None:
         """Give every beam to its nearest surface under the current estimate, keeping beams within
-        ``max_sigma`` range-noise sigmas of it and none within that reach of a second surface
-        (corners, edges). A plane that only gathered the bends of a miscalibrated cloud loses its
-        points and is dropped; planes are subsampled again."""
+        ``max_sigma`` range-noise sigmas of it. A beam is dropped when the point where the model
+        says it meets its surface (noise-free: a test on the measured point would select beams by
+        their noise and bias the range) lies within that reach of a second surface (corners,
+        edges). A plane that only gathered the bends of a miscalibrated cloud loses its points and
+        is dropped; planes are subsampled again, grazing beams and silhouettes left out."""
         o = self.obs
         x = RigModel.from_vector(self.state.rig).forward(o.l, o.alpha, o.beta, o.omega)
         reach = max_sigma * self.noise.sigma_l
         live = list(self.state.planes)
         while True:
-            dist = [np.abs(x @ pl.normal - pl.offset) for pl in live]
-            dist += [np.abs(np.linalg.norm(x - sp.center, axis=1) - sp.radius) for sp in self.state.spheres]
-            d = np.stack(dist)
+            surfaces: list[_Plane | _Sphere] = [*live, *self.state.spheres]
+            d = np.stack([_distance(x, sf) for sf in surfaces])
             nearest = np.argmin(d, axis=0)
             ok = d[nearest, np.arange(x.shape[0])] <= reach
-            if d.shape[0] > 1:  # corners and edges: within reach of two surfaces, they belong to neither
-                ok &= np.partition(d, 1, axis=0)[1] > reach
+            for k, sf in enumerate(surfaces):  # corners and edges belong to neither surface
+                idx = np.flatnonzero(ok & (nearest == k))
+                _, t, _, dirs, org = self._los(self.state.rig, idx, sf)
+                hit = org + t[:, None] * dirs
+                others = [_distance(hit, other) for j, other in enumerate(surfaces) if j != k]
+                if others:
+                    ok[idx[np.min(np.stack(others), axis=0) <= reach]] = False
             counts = np.bincount(nearest[ok], minlength=d.shape[0])[: len(live)]
             if live and counts.min() < min_plane_points:
                 live.pop(int(np.argmin(counts)))  # a plane of bends and bits: drop it, assign again
@@ -391,13 +404,15 @@ class Adjustment:
         planes = []
         for k, pl in enumerate(live):
             idx = np.flatnonzero(ok & (nearest == k))
+            _, _, cos, _, _ = self._los(self.state.rig, idx, pl)
+            idx = idx[cos >= MIN_COS]
             if idx.size > self.options.max_plane_points:
                 idx = np.sort(rng.choice(idx, self.options.max_plane_points, replace=False))
             planes.append(_Plane.make(idx, pl.normal, pl.offset))
         for k, sp in enumerate(self.state.spheres):
             sp.index = np.flatnonzero(ok & (nearest == len(live) + k))
-        self._trim_silhouettes()
         self.state = _State(self.state.rig, planes, self.state.spheres)
+        self._trim_silhouettes()
         self._init_sigma()
 
     def _trim_silhouettes(self) -> None:
