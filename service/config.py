@@ -265,6 +265,24 @@ class SimConfig(_Strict):
     node: int = Field(default=1, ge=1, le=127)
     process: bool = True
     """Run the simulated rig in its own process (``python -m sim.rig``), as a real rig is."""
+    rig_errors: dict[str, float] = Field(default_factory=dict)
+    """The simulated rig's *true* departures from ``[kinematics]`` (issue 12): ``p_m`` and the keys
+    of :attr:`lrms.kinematics.RigCalibration.MODEL_KEYS` (``range_offset_m``, ``range_scale_ppm``,
+    ``q_m``, ``tilt_x_deg``, ...). The service maps with ``[kinematics]``; the simulator casts
+    beams through ``[kinematics]`` updated by these, so a calibration has something to find."""
+
+    @field_validator("rig_errors")
+    @classmethod
+    def _rig_errors(cls, v: dict[str, float]) -> dict[str, float]:
+        allowed = {"p_m", *RigCalibration.MODEL_KEYS}
+        unknown = set(v) - allowed
+        if unknown:
+            raise ValueError(f"unknown rig error(s) {', '.join(sorted(unknown))} (known: {', '.join(sorted(allowed))})")
+        try:
+            RigCalibration.from_dict(v)
+        except (LrmsError, TypeError, ValueError) as exc:
+            raise ValueError(str(exc)) from None
+        return v
 
     @model_validator(mode="after")
     def _transport(self) -> SimConfig:
@@ -309,6 +327,11 @@ class RigConfig(_Strict):
     @property
     def calibration(self) -> RigCalibration:
         return RigCalibration.from_dict(self.kinematics)
+
+    @property
+    def sim_kinematics(self) -> dict[str, Any]:
+        """The simulated rig's true ``[kinematics]``: ours updated by ``[sim] rig_errors``."""
+        return {**self.kinematics, **(self.sim.rig_errors if self.sim is not None else {})}
 
     @property
     def is_sim(self) -> bool:

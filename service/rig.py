@@ -31,6 +31,7 @@ from drivers.lms100.client import ScannerClient
 from drivers.servo import cia402
 from drivers.url import open_device
 from lrms.errors import FitError
+from lrms.kinematics import RigCalibration
 from service import fitting, mcaplog
 from service.config import RigConfig
 from service.errors import ServiceError
@@ -73,7 +74,7 @@ class SimProcess:
             "--node",
             str(sim.node),
             "--kinematics",
-            json.dumps(config.kinematics),
+            json.dumps(config.sim_kinematics),
             "--noise",
             json.dumps(config.noise.si()),
         ]
@@ -304,7 +305,7 @@ class Rig:
                 sensor = make_sensor(cfg.sim.sensor, **cfg.noise.si())
                 self.sim = SimulatedRig(
                     cfg.sim.scene,
-                    cfg.calibration,
+                    RigCalibration.from_dict(cfg.sim_kinematics),  # the true rig: [kinematics] + [sim] rig_errors
                     sensor,
                     seed=cfg.sim.seed,
                     cola=cfg.sim.cola,

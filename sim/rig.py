@@ -249,9 +249,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--can", choices=("socketcand",), default="socketcand")
     parser.add_argument("--node", type=int, default=1)
     parser.add_argument("--kinematics", default="{}", help="JSON table as in the rig TOML [kinematics]")
+    parser.add_argument(
+        "--rig-errors",
+        default="{}",
+        help="JSON: the rig's true departures from --kinematics (as [sim] rig_errors: range_offset_m, "
+        "range_scale_ppm, p_m, q_m, tilt_x_deg, tilt_y_deg, alpha_zero_deg, beta_zero_deg, motor_scale_ppm, "
+        "backlash_deg, time_offset_s)",
+    )
     parser.add_argument("--noise", default="{}", help="JSON: sigma_l (m), sigma_alpha, sigma_beta (rad)")
     args = parser.parse_args(argv)
-    calibration = RigCalibration.from_dict(json.loads(args.kinematics))
+    calibration = RigCalibration.from_dict({**json.loads(args.kinematics), **json.loads(args.rig_errors)})
     noise = json.loads(args.noise)
     unknown = set(noise) - {"sigma_l", "sigma_alpha", "sigma_beta"}
     if unknown:

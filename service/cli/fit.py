@@ -22,6 +22,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", choices=("cylinder", "elbow"), default="cylinder")
     parser.add_argument("--json", action="store_true", help="print the result as JSON")
     parser.add_argument("--plot", metavar="PNG", default=None, help="write a figure")
+    parser.add_argument(
+        "--calibration",
+        metavar="CAL.json",
+        default=None,
+        help="a rig calibration (lrms calibrate --out): the cloud is re-mapped with the calibrated rig",
+    )
     cyl = parser.add_argument_group("cylinder")
     cyl.add_argument("--p", type=float, default=0.1, help="inner parameter p of the rig, m (default 0.1)")
     cyl.add_argument(
@@ -59,7 +65,12 @@ def run(args: argparse.Namespace) -> int:
     from service.pointio import read_points
 
     points = read_points(args.file)
-    result = _run_elbow(args, points) if args.model == "elbow" else fit_cylinder_file(args, points)
+    calibration = None
+    if args.calibration:
+        points, calibration = _apply_calibration(args, points)  # (calibration, readings)
+    result = _run_elbow(args, points) if args.model == "elbow" else fit_cylinder_file(args, points, calibration)
+    if calibration is not None:
+        result["calibration"] = {"file": str(args.calibration), "created": calibration[0].created}
     if args.json:
         json.dump(result, sys.stdout, indent=2)
         sys.stdout.write("\n")
@@ -81,7 +92,28 @@ def _run_elbow(args: argparse.Namespace, points: Any) -> dict[str, Any]:
     return {"model": "elbow", "file": str(args.file), **result}
 
 
-def fit_cylinder_file(args: argparse.Namespace, points: Any) -> dict[str, Any]:
+def _apply_calibration(args: argparse.Namespace, points: Any) -> tuple[Any, Any]:
+    """Re-map a nominal-Eq.-1 cloud with the calibrated rig (the calibration's nominal p is the
+    cloud's). Returns the calibrated points and ``(calibration, readings)``."""
+    from pathlib import Path
+
+    from lrms.calibration import CalibrationError, CalibrationResult, Observations
+
+    try:
+        text = Path(args.calibration).read_text(encoding="utf-8")
+    except OSError as exc:
+        raise CalibrationError(f"cannot read the calibration {args.calibration}: {exc.strerror or exc}") from None
+    cal = CalibrationResult.from_json(text)
+    if args.p != 0.1 and abs(cal.nominal.p - args.p) > 1e-12:
+        raise CalibrationError(f"--p {args.p} differs from the calibration's nominal p {cal.nominal.p}")
+    args.p = cal.nominal.p
+    obs = Observations.from_points(points, cal.nominal.p)
+    if len(obs) != len(points):
+        raise CalibrationError("some points lie on the motor axis: their readings cannot be recovered")
+    return cal.model.forward(obs.l, obs.alpha, obs.beta), (cal, obs)
+
+
+def fit_cylinder_file(args: argparse.Namespace, points: Any, calibration: Any = None) -> dict[str, Any]:
     """The cylinder branch: :func:`service.fitting.cylinder_result`, optional plot; a JSON-ready dict."""
     import numpy as np
 
@@ -99,6 +131,14 @@ def fit_cylinder_file(args: argparse.Namespace, points: Any) -> dict[str, Any]:
     noise = NoiseModel() if args.sigma_l_mm is None else NoiseModel(sigma_l=args.sigma_l_mm / 1e3)
     pts = np.asarray(points, dtype=np.float64)
     rays = rays_from_points(pts, args.p, noise) if args.line_of_sight else None
+    if calibration is not None and args.line_of_sight:  # the beams of the calibrated rig
+        from lrms.cylinder import Rays
+
+        cal, obs = calibration
+        model = cal.model
+        o, d = model.rays(obs.alpha, obs.beta)
+        perp = np.hypot(obs.l * noise.sigma_alpha, (obs.l * np.sin(obs.alpha) + model.p) * noise.sigma_beta)
+        rays = Rays(o, d, model.geometric_range(obs.l), np.full(obs.l.size, noise.sigma_l), perp)
     core, fit, crit = cylinder_result(
         pts,
         rays=rays,

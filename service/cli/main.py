@@ -25,6 +25,7 @@ COMMANDS: dict[tuple[str, ...], str] = {
     ("scan",): "service.cli.scan",
     ("motor",): "service.cli.motor",
     ("fit",): "service.cli.fit",
+    ("calibrate",): "service.cli.calibrate",
     ("register",): "service.cli.register",
     ("brackets",): "service.cli.brackets",
     ("serve",): "service.cli.serve",
@@ -37,10 +38,22 @@ COMMANDS: dict[tuple[str, ...], str] = {
 GROUP_HELP = {"sim": "run a simulated device server (scanner or motor)"}
 
 
+class _Formatter(argparse.HelpFormatter):
+    """Room for the longest command name (``calibrate``) beside its help."""
+
+    def __init__(self, prog: str) -> None:
+        super().__init__(prog)
+        self._action_max_length = 14
+
+
 def build_parser() -> argparse.ArgumentParser:
     from lrms import __version__
 
-    parser = argparse.ArgumentParser(prog="lrms", description="Laser radar measurement system")
+    parser = argparse.ArgumentParser(
+        prog="lrms",
+        description="Laser radar measurement system",
+        formatter_class=_Formatter,
+    )
     parser.add_argument("--version", action="version", version=f"lrms {__version__}")
     top = parser.add_subparsers(dest="command", metavar="COMMAND")
     top.required = True

@@ -30,6 +30,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--time-scale", type=float, default=1.0, help="real-time mode: device clock speed-up")
     parser.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    parser.add_argument(
+        "--rig-errors",
+        default="{}",
+        metavar="JSON",
+        help="the simulated rig's true errors, as [sim] rig_errors (e.g. '{\"range_offset_m\": 0.02}')",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -43,8 +49,21 @@ def run(args: argparse.Namespace) -> int:
     # rejected requests are logged by the device (WARNING): show them with time and source
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     port = args.port if args.port is not None else (2111 if args.cola == "a" else 2112)
+    import json
+
+    from lrms.kinematics import RigCalibration
+
+    try:
+        calibration = RigCalibration.from_dict(json.loads(args.rig_errors))
+    except json.JSONDecodeError as exc:
+        raise SystemExit(f"error: --rig-errors is not JSON: {exc}") from None
     device = SimulatedLMS100(
-        args.scene, sensor=make_sensor(args.sensor), seed=args.seed, realtime=args.realtime, time_scale=args.time_scale
+        args.scene,
+        calibration,
+        sensor=make_sensor(args.sensor),
+        seed=args.seed,
+        realtime=args.realtime,
+        time_scale=args.time_scale,
     )
     server = ScannerServer(device, host=args.host, port=port, dialect=args.cola)
     mode = "real time" if args.realtime else "fast (virtual clock)"

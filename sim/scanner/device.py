@@ -394,7 +394,13 @@ class SimulatedLMS100:
             raise SimulatorError(f"motor_angle_at must return one finite angle per beam time, got shape {motor.shape}")
         dev_rad = np.deg2rad(dev_raw / 1e4)
         rng = np.random.default_rng([self.seed, index])
-        samples = cast_beams(self.scene, self.calibration, self.sensor, dev_rad, motor, rng, time_s=beam_times_s)
+        rig = self.calibration.rig
+        speed = None  # the motor speed at each beam, for a rig with backlash or a scan/motor time offset
+        if (rig.backlash != 0.0 or rig.time_offset != 0.0) and motor.size > 1:
+            speed = np.gradient(motor, beam_times_s)
+        samples = cast_beams(
+            self.scene, self.calibration, self.sensor, dev_rad, motor, rng, time_s=beam_times_s, motor_speed_rad_s=speed
+        )
         start_deg, step_deg = float(dev_raw[0]) / 1e4, cfg.angular_resolution / 1e4
         channels_16, channels_8 = scan_channels(samples, cfg.data, start_deg, step_deg)
         time_info = scan_time_of(t.start_us) if cfg.data.time else None

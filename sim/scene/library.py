@@ -13,7 +13,7 @@ from collections.abc import Callable
 import numpy as np
 
 from sim.scene.scene import Scene
-from sim.scene.shapes import Box, Cylinder, Plane, SceneError, TorusSection
+from sim.scene.shapes import Box, Cylinder, Plane, SceneError, Sphere, TorusSection
 
 #: Seed 003's part: a 137.5 mm diameter cylinder (CMM value), axis (0, 0, 1) through the centre
 #: of its bottom circle C0 = (0.28, 2.53, -0.1) m, standing on the table top at z = -0.1 m.
@@ -32,6 +32,23 @@ ELBOW_START = (1.0, 0.0, 0.0)
 ELBOW_BEND_RADIUS = 0.35
 ELBOW_DIAMETER = 0.25
 ELBOW_DEGREE = float(np.pi / 2)
+
+#: The ``room-spheres`` calibration scene (issue 12): a room of six planes turned 8 deg about z
+#: (walls at these distances from the rig along the room's own axes, floor and ceiling) and
+#: reference spheres ``(centre, diameter)`` at different ranges and heights; spheres 4 and 5
+#: form a 2 m sphere bar (centre distance ``ROOM_SPHERE_BAR[2]``) running away from the rig.
+ROOM_YAW_DEG = 8.0
+ROOM_WALLS = {"x_min": -2.2, "x_max": 3.1, "y_min": -1.8, "y_max": 5.5, "z_min": -1.3, "z_max": 1.9}
+ROOM_SPHERES: tuple[tuple[tuple[float, float, float], float], ...] = (
+    ((0.6, 1.5, -0.3), 0.2),
+    ((-0.8, 2.4, 0.45), 0.2),
+    ((1.6, 3.4, -0.7), 0.2),
+    ((-0.3, 4.6, 0.25), 0.2),
+    ((-0.8, 1.2, -0.5), 0.25),
+    ((-1.285071, 3.140285, -0.5), 0.25),
+    ((1.5, -0.9, 0.3), 0.2),
+)
+ROOM_SPHERE_BAR = (4, 5, np.float64(1.999999939066499))
 
 SceneFactory = Callable[[], Scene]
 _SCENES: dict[str, tuple[SceneFactory, str]] = {}
@@ -215,6 +232,37 @@ def elbow() -> Scene:
     return scene
 
 
+def room_spheres_artefact() -> dict[str, object]:
+    """The ``room-spheres`` scene's artefact description (the ``lrms calibrate --artefact`` JSON)."""
+    a, b, dist = ROOM_SPHERE_BAR
+    return {
+        "planes": True,
+        "spheres": [{"diameter_m": d} for _, d in ROOM_SPHERES],
+        "distances_m": [{"a": a, "b": b, "distance_m": dist}],
+    }
+
+
+def room_spheres() -> Scene:
+    """A calibration room: six planes (``ROOM_WALLS``, turned ``ROOM_YAW_DEG``) and ``ROOM_SPHERES``."""
+    scene = Scene("room-spheres")
+    rot = _rot_z(np.deg2rad(ROOM_YAW_DEG))
+    w = ROOM_WALLS
+    for name, axis, value in (
+        ("wall_x_min", 0, w["x_min"]),
+        ("wall_x_max", 0, w["x_max"]),
+        ("wall_y_min", 1, w["y_min"]),
+        ("wall_y_max", 1, w["y_max"]),
+        ("floor", 2, w["z_min"]),
+        ("ceiling", 2, w["z_max"]),
+    ):
+        normal = np.zeros(3)
+        normal[axis] = -np.sign(value)  # facing the rig
+        scene.add(Plane(rot @ (-normal * abs(value)), rot @ normal), remission=0.5, name=name)
+    for i, (centre, diameter) in enumerate(ROOM_SPHERES):
+        scene.add(Sphere(centre, diameter / 2), remission=0.8, name=f"sphere{i}")
+    return scene
+
+
 register_scene("seed003", seed003, "seed 003: 137.5 mm cylinder on a table 2.53 m along +y, floor, wall, clutter")
 register_scene(
     "seed003-room",
@@ -224,4 +272,5 @@ register_scene(
 register_scene("seed003-bare", seed003_bare, "seed 003's cylinder and table only")
 register_scene("empty", empty, "nothing: every beam misses")
 register_scene("wall", wall, "an infinite wall at y = 3 m")
+register_scene("room-spheres", room_spheres, "calibration room: 6 planes, 7 reference spheres (a 2 m sphere bar)")
 register_scene("elbow", elbow, "a 90 deg pipe elbow, D 250 mm, A 350 mm, 1.8 m ahead; floor")

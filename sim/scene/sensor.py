@@ -16,13 +16,14 @@ range lies outside ``[range_min, range_max]``, that miss everything, or whose ec
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Protocol, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from lrms.kinematics import RigCalibration, beam_rays
+from lrms.kinematics import RigCalibration
 from sim.scene.scene import Scene
 from sim.scene.shapes import FloatArray, SceneError
 
@@ -216,13 +217,16 @@ def cast_beams(
     motor_angles_rad: ArrayLike,
     rng: np.random.Generator | None = None,
     time_s: ArrayLike | None = None,
+    motor_speed_rad_s: ArrayLike | None = None,
 ) -> BeamSamples:
     """Simulate samples for device beam angles and motor angles (broadcast against each other).
 
     Typical shapes: ``device_angles (M,)`` with ``motor_angles (S, 1)`` (one plane per scan) or
     ``(S, M)`` (the plane turns during the scan). Without ``rng`` nothing is random.
     ``time_s``: device time since power-on (s) of each beam (broadcast too), for a sensor with
-    warm-up drift; None = warmed up.
+    warm-up drift; None = warmed up. The rig's true geometry is ``calibration.rig``
+    (:class:`lrms.kinematics.RigModel`: range offset and scale, tilts, zeros, ...);
+    ``motor_speed_rad_s`` (broadcast like the angles) feeds its backlash and time-offset terms.
     """
     dev, mot = np.broadcast_arrays(
         np.asarray(device_angles_rad, dtype=np.float64), np.asarray(motor_angles_rad, dtype=np.float64)
@@ -233,16 +237,21 @@ def cast_beams(
     d_alpha, d_beta = sensor.angle_noise(shape, rng)
     alpha = calibration.alpha(dev) + d_alpha
     beta = calibration.beta(mot) + d_beta
-    o_rig, d_rig = beam_rays(alpha.ravel(), beta.ravel(), calibration.p)
-    rot = calibration.world_from_rig[:3, :3]
-    origins = calibration.to_world(o_rig)
-    dirs = d_rig @ rot.T
+    speed = None if motor_speed_rad_s is None else np.broadcast_to(motor_speed_rad_s, shape).ravel()
+    origins, dirs = calibration.rays(alpha.ravel(), beta.ravel(), speed)  # the rig's true geometry (RigModel)
     times = None
     if time_s is not None:
         times = np.broadcast_to(np.asarray(time_s, dtype=np.float64), shape).ravel()
         if not np.all(np.isfinite(times)):
             raise SceneError("beam times must be finite")
     e = sensor.echoes(scene, origins, dirs, rng, times)
+    # the scanner reports the distance it measured through its range offset and scale (RigModel.k0, k1)
+    rig = calibration.rig
+    if rig.k0 != 0.0 or rig.k1 != 0.0:
+        range2 = e.range2
+        if range2 is not None and e.valid2 is not None:
+            range2 = np.where(e.valid2, rig.reported_range(range2), 0.0)
+        e = dataclasses.replace(e, range=np.where(e.valid, rig.reported_range(e.range), 0.0), range2=range2)
 
     return BeamSamples(
         ranges=e.range.reshape(shape),
@@ -350,5 +359,6 @@ def continuous_sweep_cloud(
     scans = int(np.floor(span / speed_rad_s / period)) + 1
     t = np.arange(scans)[:, None] * period + beam_times(len(dev), scan_frequency_hz, resolution_deg)[None, :]
     motor = motor_start_rad + direction * np.minimum(speed_rad_s * t, span)
-    samples = cast_beams(scene, calibration, sensor, dev, motor, rng)
+    omega = np.where(speed_rad_s * t < span, direction * speed_rad_s, 0.0)
+    samples = cast_beams(scene, calibration, sensor, dev, motor, rng, omega)
     return samples.points(calibration), samples

@@ -69,6 +69,8 @@ def test_token_from_environment(monkeypatch: pytest.MonkeyPatch) -> None:
         ("[sim]\n[kinematics]\nbogus=1\n", "bogus"),
         ("[sim]\nscene=3\n", "scene"),
         ("[sim]\nsensor='lms2xx'\n", "sensor"),
+        ("[sim]\nrig_errors = {range_offset_mm = 1}\n", "unknown rig error"),
+        ("[sim]\nrig_errors = {p_m = -0.1}\n", "inner parameter"),
         ("[sim\n", "not valid TOML"),
         ("[scanner]\nurl='10.0.0.5:2112'\n[motor]\nurl='canopen+socketcan://can0'\n", "not a device URL"),
     ],
@@ -108,3 +110,16 @@ def test_noise_in_degrees_becomes_the_si_noise_model_once() -> None:
     si = cfg.noise.si()
     assert si == pytest.approx({"sigma_l": 0.02, "sigma_alpha": np.pi / 360, "sigma_beta": np.pi / 18000})
     assert noise_model(cfg) == NoiseModel(**si)
+
+
+def test_sim_rig_errors_make_the_simulated_rig_differ_from_the_mapping() -> None:
+    """[sim] rig_errors: the service maps with [kinematics]; the simulator's true rig adds the errors."""
+    from lrms.kinematics import RigCalibration
+
+    cfg = parse_toml(
+        "[sim]\nrig_errors = {range_offset_m = 0.02, tilt_x_deg = 0.2, p_m = 0.103}\n[kinematics]\nmotor_zero_deg = 1\n"
+    )
+    assert cfg.calibration.rig.k0 == 0.0 and cfg.calibration.p == pytest.approx(0.1)
+    true = RigCalibration.from_dict(cfg.sim_kinematics)
+    assert true.rig.k0 == 0.02 and true.p == 0.103 and true.rig.tilt_x == pytest.approx(np.deg2rad(0.2))
+    assert true.motor_zero == pytest.approx(np.deg2rad(1.0))

@@ -1,0 +1,166 @@
+"""Rig calibration (issue 12): the rig's geometry and the scanner's range errors from sweeps of a
+room and reference spheres, by adjustment on the raw observations.
+
+Typical use::
+
+    from lrms.calibration import Artefact, Observations, calibrate
+    result = calibrate([Observations.from_points(cloud)], Artefact.from_dict(json.load(f)))
+    result.model          # the estimated RigModel (lrms.kinematics)
+    result.to_json()      # values, covariance, correlations, residuals, identifiability report
+
+See docs/calibration.md for the model, the artefacts and the identifiability rules.
+"""
+
+from __future__ import annotations
+
+import datetime
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+import lrms
+from lrms.calibration.adjust import GOAL, SPREAD, STRUCTURAL, Adjustment, AdjustOptions
+from lrms.calibration.data import (
+    Artefact,
+    ArtefactError,
+    CalibrationError,
+    CloudTooSmallError,
+    DetectionError,
+    DistanceSpec,
+    Observations,
+    SphereSpec,
+    concatenate,
+)
+from lrms.calibration.detect import DetectOptions, detect_planes, detect_spheres
+from lrms.calibration.result import CalibrationResult, Identifiability, SurfaceFit
+from lrms.covariance import NoiseModel
+from lrms.kinematics import RigModel
+
+__all__ = [
+    "GOAL",
+    "SPREAD",
+    "AdjustOptions",
+    "Artefact",
+    "ArtefactError",
+    "CalibrationError",
+    "CalibrationOptions",
+    "CalibrationResult",
+    "CloudTooSmallError",
+    "DetectOptions",
+    "DetectionError",
+    "DistanceSpec",
+    "Identifiability",
+    "Observations",
+    "SphereSpec",
+    "SurfaceFit",
+    "apply_to_points",
+    "calibrate",
+]
+
+#: Fewer valid beams than this is no calibration sweep.
+MIN_OBSERVATIONS = 2000
+
+
+@dataclass(frozen=True)
+class CalibrationOptions:
+    detect: DetectOptions = field(default_factory=DetectOptions)
+    adjust: AdjustOptions = field(default_factory=AdjustOptions)
+
+
+def calibrate(
+    sweeps: Sequence[Observations],
+    artefact: Artefact,
+    *,
+    nominal: RigModel | None = None,
+    noise: NoiseModel | None = None,
+    options: CalibrationOptions | None = None,
+) -> CalibrationResult:
+    """Estimate the rig (:class:`RigModel`) from calibration sweeps of ``artefact``.
+
+    The surfaces are found in the cloud mapped with ``nominal`` (default: seed 003's Eq. 1), the
+    parameters the data cannot determine are held at their nominal values (the result's
+    identifiability report says which, why, and what data would determine them), and the others
+    are adjusted jointly with the surfaces. Raises :class:`CloudTooSmallError`,
+    :class:`DetectionError` (no planes / spheres found) or :class:`CalibrationError`.
+    """
+    nom = nominal if nominal is not None else RigModel()
+    nm = noise if noise is not None else NoiseModel()
+    opts = options if options is not None else CalibrationOptions()
+    obs, _ = concatenate(list(sweeps))
+    if len(obs) < MIN_OBSERVATIONS:
+        raise CloudTooSmallError(f"a calibration needs at least {MIN_OBSERVATIONS} valid beams, got {len(obs)}")
+    points = nom.forward(obs.l, obs.alpha, obs.beta, obs.omega)
+    rng = np.random.default_rng(opts.detect.seed)
+    planes = detect_planes(points, opts.detect, rng) if artefact.planes else []
+    if artefact.planes and not planes:
+        raise DetectionError(f"no planes found (none with >= {opts.detect.min_plane_points} points)")
+    on_plane = np.zeros(len(obs), dtype=bool)
+    for pl in planes:
+        on_plane[pl.index] = True
+    spheres = detect_spheres(points, np.flatnonzero(~on_plane), artefact, opts.detect)
+
+    adj = Adjustment(obs, planes, spheres, artefact, nom, nm, opts.adjust)
+    adj._init_sigma()
+    names, _, _ = adj.choose_free()
+    adj.solve(names)  # a first estimate from the loose segmentation of the nominal cloud
+    adj.resegment(opts.detect.min_plane_points, opts.adjust.outlier_sigma)
+    names, held, eig = adj.choose_free()
+    adj.solve(names)
+    adj.reject_outliers(names)
+    r, jac, iterations = adj.solve(names)
+    cov_free, s0sq, dof = adj.covariance(names, jac, r)
+
+    idx = [RigModel.NAMES.index(n) for n in names]
+    cov = np.zeros((len(RigModel.NAMES), len(RigModel.NAMES)))
+    cov[np.ix_(idx, idx)] = cov_free
+    std = np.sqrt(np.clip(np.diag(cov_free), 0, None))
+    weak = {
+        n: f"std {s * RigModel.UNITS[n][1]:.3g} {RigModel.UNITS[n][0]} exceeds the goal "
+        f"{GOAL[n] * RigModel.UNITS[n][1]:.3g} {RigModel.UNITS[n][0]}"
+        for n, s in zip(names, std, strict=True)
+        if s > GOAL[n]
+    }
+    scaled = cov_free / np.outer([SPREAD[n] for n in names], [SPREAD[n] for n in names]) if names else np.zeros((0, 0))
+    info = np.linalg.eigvalsh(np.linalg.inv(scaled)) if names else np.zeros(1)
+    ident = Identifiability(
+        held={**{n: STRUCTURAL[n] for n in STRUCTURAL}, **held},
+        rank=len(names),
+        condition=float(info[-1] / info[0]) if info[0] > 0 else float("inf"),
+        weak=weak,
+        eigenvalues=tuple(float(x) for x in eig),
+    )
+    rows, metric = adj.surface_summary(names)
+    surfaces = tuple(SurfaceFit(k, params, n, rms, ai) for k, params, n, rms, ai in rows)
+    model = RigModel.from_vector(adj.state.rig)
+    return CalibrationResult(
+        model=model,
+        nominal=nom,
+        covariance=cov,
+        estimated=tuple(names),
+        identifiability=ident,
+        surfaces=surfaces,
+        residuals={
+            "variance_factor": s0sq,
+            "dof": float(dof),
+            "observations": float(metric.size),
+            "rms_m": float(np.sqrt(np.mean(metric**2))),
+            "rms_weighted": float(np.sqrt(np.mean(r**2))),
+            "iterations": float(iterations),
+            "planes": float(len(adj.state.planes)),
+            "spheres": float(len(adj.state.spheres)),
+        },
+        artefact=artefact.to_dict(),
+        sources=tuple(s.source for s in sweeps if s.source),
+        created=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        software_version=lrms.__version__,
+    )
+
+
+def apply_to_points(points: np.ndarray, calibration: CalibrationResult) -> np.ndarray:
+    """Re-map a cloud mapped with the calibration's nominal rig (rig at the origin) with the
+    calibrated rig: invert the nominal Eq. 1 to the readings, map them with the estimate."""
+    obs = Observations.from_points(points, calibration.nominal.p)
+    if len(obs) != len(points):
+        raise CalibrationError("some points lie on the motor axis: their readings cannot be recovered")
+    return calibration.model.forward(obs.l, obs.alpha, obs.beta)

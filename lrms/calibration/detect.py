@@ -1,0 +1,197 @@
+"""Finding the calibration surfaces in a cloud mapped with the nominal rig: planes, then spheres.
+
+Planes: sequential RANSAC (:func:`lrms.ransac.ransac` with :class:`~lrms.ransac.PlaneModel`)
+with a loose threshold (a miscalibrated rig bends a wall by up to a few centimetres), largest
+first, until the next plane holds fewer than ``min_plane_points``; a plane whose points spread
+less than ``min_plane_extent_m`` (standard deviation along its second axis), or whose points do
+not form one connected patch for the most part (neighbours within ``plane_gap_m``: the caps of
+spheres that happen to line up, strips of bent walls), is not taken. Spheres: the points that are
+on no plane are split into connected clusters (neighbours within ``cluster_gap_m``), a sphere
+is fitted to each cluster (algebraic, then geometric least squares), and a cluster is taken as
+the artefact's sphere whose radius is nearest, if the fitted radius is within
+``radius_tolerance`` of it and the fit is tight. Spheres of equal diameter are told apart by the
+artefact's centre distances where given.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import optimize, sparse
+from scipy.sparse import csgraph
+from scipy.spatial import cKDTree
+
+from lrms.calibration.data import Artefact, DetectionError
+from lrms.errors import FitError
+from lrms.ransac import PlaneModel, ransac
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+
+@dataclass(frozen=True)
+class DetectOptions:
+    plane_threshold_m: float = 0.06
+    min_plane_points: int = 2000
+    max_planes: int = 12
+    min_plane_extent_m: float = 0.25
+    plane_gap_m: float = 0.25
+    cluster_gap_m: float = 0.05
+    min_sphere_points: int = 40
+    radius_tolerance_m: float = 0.03
+    sphere_threshold_m: float = 0.05
+    distance_tolerance_m: float = 0.05
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class PlaneSeg:
+    index: IntArray
+    normal: FloatArray
+    offset: float
+
+
+@dataclass(frozen=True)
+class SphereSeg:
+    index: IntArray
+    center: FloatArray
+    radius: float
+    artefact_index: int
+
+
+def detect_planes(points: FloatArray, opts: DetectOptions, rng: np.random.Generator) -> list[PlaneSeg]:
+    """Planes of the room, largest first (indices into ``points``); each point on at most one."""
+    n = points.shape[0]
+    free = np.ones(n, dtype=bool)
+    planes: list[PlaneSeg] = []
+    while len(planes) < opts.max_planes and int(free.sum()) >= opts.min_plane_points:
+        idx = np.flatnonzero(free)
+        try:
+            model, mask = ransac(
+                points[idx],
+                PlaneModel,
+                3,
+                opts.plane_threshold_m,
+                max_trials=400,
+                min_inliers=opts.min_plane_points,
+                score_size=20000,
+                rng=rng,
+            )
+        except FitError:
+            break
+        members = idx[mask]
+        free[members] = False
+        # a plane is large: a slice through a sphere or a bundle of leftovers is not one
+        sv = np.linalg.svd(points[members[:: max(1, members.size // 5000)]] - points[members].mean(axis=0),
+                           compute_uv=False)  # fmt: skip
+        if sv[1] / np.sqrt(min(members.size, 5000)) < opts.min_plane_extent_m:
+            continue
+        if not _mostly_connected(points[members], opts.plane_gap_m, rng):
+            continue  # caps of several spheres, or strips of other walls, that happen to line up
+        planes.append(PlaneSeg(members, model.normal.copy(), float(model.offset)))
+    return planes
+
+
+def _mostly_connected(pts: FloatArray, gap: float, rng: np.random.Generator, sample: int = 4000) -> bool:
+    """Whether half of a plane's points (a random subset of ``sample``) form one connected patch
+    (neighbours within ``gap``)."""
+    if pts.shape[0] > sample:
+        pts = pts[rng.choice(pts.shape[0], sample, replace=False)]
+    pairs = cKDTree(pts).query_pairs(gap, output_type="ndarray")
+    graph = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(pts), len(pts)))
+    _, labels = csgraph.connected_components(graph, directed=False)
+    return bool(np.bincount(labels).max() >= 0.5 * len(pts))
+
+
+def _fit_sphere(pts: FloatArray) -> tuple[FloatArray, float, float]:
+    """Centre, radius and rms of a least-squares sphere (algebraic start, geometric refinement)."""
+    a = np.column_stack([2 * pts, np.ones(len(pts))])
+    sol, *_ = np.linalg.lstsq(a, np.einsum("ij,ij->i", pts, pts), rcond=None)
+    c0 = sol[:3]
+    r0 = float(np.sqrt(max(sol[3] + c0 @ c0, 1e-12)))
+
+    def res(x: FloatArray) -> FloatArray:
+        return np.asarray(np.linalg.norm(pts - x[:3], axis=1) - x[3], dtype=np.float64)
+
+    fit = optimize.least_squares(res, np.r_[c0, r0], method="lm")
+    r = fit.fun
+    return fit.x[:3], float(abs(fit.x[3])), float(np.sqrt(np.mean(r * r)))
+
+
+def _fit_sphere_known(pts: FloatArray, center: FloatArray, radius: float) -> tuple[FloatArray, float]:
+    def res(c: FloatArray) -> FloatArray:
+        return np.asarray(np.linalg.norm(pts - c, axis=1) - radius, dtype=np.float64)
+
+    fit = optimize.least_squares(res, center, method="lm")
+    return fit.x, float(np.sqrt(np.mean(fit.fun**2)))
+
+
+def detect_spheres(
+    points: FloatArray, candidates: IntArray, artefact: Artefact, opts: DetectOptions
+) -> list[SphereSeg]:
+    """The artefact's spheres among ``points[candidates]`` (the points on no plane)."""
+    if not artefact.spheres:
+        return []
+    if candidates.size == 0:
+        raise DetectionError(
+            f"no spheres found: every point lies on a plane (the artefact has {len(artefact.spheres)})"
+        )
+    pts = points[candidates]
+    tree = cKDTree(pts)
+    pairs = tree.query_pairs(opts.cluster_gap_m, output_type="ndarray")
+    graph = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(pts), len(pts)))
+    n_comp, labels = csgraph.connected_components(graph, directed=False)
+    counts = np.bincount(labels, minlength=n_comp)
+    radii = np.array([s.diameter_m / 2 for s in artefact.spheres])
+    found: list[tuple[IntArray, FloatArray, float, float]] = []  # index, centre, radius, rms
+    for comp in np.flatnonzero(counts >= opts.min_sphere_points):
+        members = np.flatnonzero(labels == comp)
+        c, r, _ = _fit_sphere(pts[members])
+        k = int(np.argmin(np.abs(radii - r)))
+        if abs(radii[k] - r) > opts.radius_tolerance_m:
+            continue
+        c, rms = _fit_sphere_known(pts[members], c, float(radii[k]))
+        if rms > opts.sphere_threshold_m / 2:
+            continue
+        dist = np.abs(np.linalg.norm(pts[members] - c, axis=1) - radii[k])
+        found.append((candidates[members[dist < opts.sphere_threshold_m]], c, float(radii[k]), rms))
+    if not found:
+        raise DetectionError(
+            f"no spheres found: no cluster of >= {opts.min_sphere_points} points off the planes fits a sphere of "
+            f"diameter {', '.join(f'{2 * r:.4g}' for r in sorted(set(radii)))} m within {opts.radius_tolerance_m} m"
+        )
+    return _assign(found, artefact, opts)
+
+
+def _assign(
+    found: list[tuple[IntArray, FloatArray, float, float]], artefact: Artefact, opts: DetectOptions
+) -> list[SphereSeg]:
+    """Give each found sphere an artefact sphere of its diameter; the centre distances decide
+    between spheres of equal diameter (the pair whose distance matches is taken)."""
+    diam = np.array([s.diameter_m for s in artefact.spheres])
+    owner: dict[int, int] = {}  # artefact index -> found index
+    used: set[int] = set()
+    for d in artefact.distances:
+        best: tuple[float, int, int] | None = None
+        for i, fi in enumerate(found):
+            for j, fj in enumerate(found):
+                if i == j or i in used or j in used:
+                    continue
+                if not (np.isclose(2 * fi[2], diam[d.a]) and np.isclose(2 * fj[2], diam[d.b])):
+                    continue
+                err = abs(float(np.linalg.norm(fi[1] - fj[1])) - d.distance_m)
+                if err < opts.distance_tolerance_m and (best is None or err < best[0]):
+                    best = (err, i, j)
+        if best is not None and d.a not in owner and d.b not in owner:
+            owner[d.a], owner[d.b] = best[1], best[2]
+            used.update((best[1], best[2]))
+    for i, f in enumerate(found):
+        if i in used:
+            continue
+        free = [k for k in range(len(diam)) if k not in owner and np.isclose(diam[k], 2 * f[2])]
+        if free:
+            owner[free[0]] = i
+            used.add(i)
+    return [SphereSeg(found[i][0], found[i][1], found[i][2], k) for k, i in sorted(owner.items())]

@@ -1,0 +1,186 @@
+"""The outcome of a rig calibration, as plain data with a JSON form (for files and the result store)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lrms.calibration.data import CalibrationError
+from lrms.kinematics import RigModel
+
+FloatArray = NDArray[np.float64]
+SCHEMA = "lrms.calibration/1"
+
+
+@dataclass(frozen=True)
+class SurfaceFit:
+    """One adjusted surface: ``kind`` "plane" (``params`` = unit normal, offset ``n . x = d``) or
+    "sphere" (``params`` = centre, diameter); points used and rms residual (m)."""
+
+    kind: str
+    params: tuple[float, ...]
+    points: int
+    rms_m: float
+    artefact_index: int = -1
+
+    def to_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"kind": self.kind, "points": self.points, "rms_m": self.rms_m}
+        if self.kind == "plane":
+            d.update(normal=list(self.params[:3]), offset_m=self.params[3])
+        else:
+            d.update(center_m=list(self.params[:3]), diameter_m=self.params[3], artefact_index=self.artefact_index)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> SurfaceFit:
+        if d["kind"] == "plane":
+            params = (*map(float, d["normal"]), float(d["offset_m"]))
+        else:
+            params = (*map(float, d["center_m"]), float(d["diameter_m"]))
+        return cls(str(d["kind"]), params, int(d["points"]), float(d["rms_m"]), int(d.get("artefact_index", -1)))
+
+
+@dataclass(frozen=True)
+class Identifiability:
+    """What the data could determine.
+
+    ``held``: parameters held at their nominal values, with the reason and the data that would
+    determine them; ``rank`` and ``condition``: of the normal matrix of the rig parameters
+    (surfaces eliminated, columns scaled by the parameters' tolerance spreads) over the
+    estimated ones; ``weak``: estimated parameters whose standard deviation exceeds their goal,
+    with advice; ``eigenvalues``: of the scaled matrix over all non-structural parameters,
+    ascending (1 / eigenvalue = variance in units of the spread).
+    """
+
+    held: dict[str, str]
+    rank: int
+    condition: float
+    weak: dict[str, str] = field(default_factory=dict)
+    eigenvalues: tuple[float, ...] = ()
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "held": dict(self.held),
+            "rank": self.rank,
+            "condition": self.condition,
+            "weak": dict(self.weak),
+            "eigenvalues": list(self.eigenvalues),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Identifiability:
+        return cls(
+            dict(d["held"]), int(d["rank"]), float(d["condition"]), dict(d.get("weak", {})),
+            tuple(float(x) for x in d.get("eigenvalues", ())),
+        )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """A rig calibration: the estimated :class:`RigModel`, the covariance of its parameters (SI, in
+    :attr:`RigModel.NAMES` order; rows and columns of held parameters are zero), the adjusted
+    surfaces, the residual summary and the identifiability report."""
+
+    model: RigModel
+    nominal: RigModel
+    covariance: FloatArray
+    estimated: tuple[str, ...]
+    identifiability: Identifiability
+    surfaces: tuple[SurfaceFit, ...]
+    residuals: dict[str, float]
+    artefact: dict[str, Any]
+    sources: tuple[str, ...] = ()
+    created: str = ""
+    software_version: str = ""
+
+    def __post_init__(self) -> None:
+        cov = np.asarray(self.covariance, dtype=np.float64)
+        n = len(RigModel.NAMES)
+        if cov.shape != (n, n):
+            raise CalibrationError(f"a calibration covariance is {n}x{n}, got {cov.shape}")
+        object.__setattr__(self, "covariance", cov)
+
+    def std(self) -> dict[str, float]:
+        """Standard deviations (SI) of the estimated parameters."""
+        idx = {n: i for i, n in enumerate(RigModel.NAMES)}
+        return {n: float(np.sqrt(max(self.covariance[idx[n], idx[n]], 0.0))) for n in self.estimated}
+
+    def correlations(self) -> FloatArray:
+        """Correlation matrix over :attr:`estimated` (in that order)."""
+        idx = [RigModel.NAMES.index(n) for n in self.estimated]
+        c = self.covariance[np.ix_(idx, idx)]
+        s = np.sqrt(np.clip(np.diag(c), 1e-300, None))
+        return np.asarray(c / np.outer(s, s), dtype=np.float64)
+
+    def table(self) -> list[dict[str, Any]]:
+        """One row per parameter in display units: value, nominal, std (None when held)."""
+        std = self.std()
+        rows = []
+        for name in RigModel.NAMES:
+            unit, f = RigModel.UNITS[name]
+            rows.append(
+                {
+                    "name": name,
+                    "unit": unit,
+                    "value": getattr(self.model, name) * f,
+                    "nominal": getattr(self.nominal, name) * f,
+                    "std": std[name] * f if name in std else None,
+                    "held": name in self.identifiability.held,
+                }
+            )
+        return rows
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "schema": SCHEMA,
+            "created": self.created,
+            "software_version": self.software_version,
+            "model": self.model.to_dict(),
+            "nominal": self.nominal.to_dict(),
+            "estimated": list(self.estimated),
+            "covariance": self.covariance.tolist(),
+            "correlations": self.correlations().tolist(),
+            "std": self.std(),
+            "identifiability": self.identifiability.to_dict(),
+            "surfaces": [s.to_dict() for s in self.surfaces],
+            "residuals": dict(self.residuals),
+            "artefact": self.artefact,
+            "sources": list(self.sources),
+            "table": self.table(),
+        }
+
+    def to_json(self, indent: int | None = 2) -> str:
+        return json.dumps(self.to_dict(), indent=indent)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> CalibrationResult:
+        if not isinstance(d, dict) or d.get("schema") != SCHEMA:
+            raise CalibrationError(f"not a calibration (expected schema {SCHEMA!r})")
+        try:
+            return cls(
+                model=RigModel.from_dict(d["model"]),
+                nominal=RigModel.from_dict(d["nominal"]),
+                covariance=np.asarray(d["covariance"], dtype=np.float64),
+                estimated=tuple(str(n) for n in d["estimated"]),
+                identifiability=Identifiability.from_dict(d["identifiability"]),
+                surfaces=tuple(SurfaceFit.from_dict(s) for s in d["surfaces"]),
+                residuals={k: float(v) for k, v in d["residuals"].items()},
+                artefact=dict(d["artefact"]),
+                sources=tuple(str(s) for s in d.get("sources", ())),
+                created=str(d.get("created", "")),
+                software_version=str(d.get("software_version", "")),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CalibrationError(f"malformed calibration: {exc}") from None
+
+    @classmethod
+    def from_json(cls, text: str) -> CalibrationResult:
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise CalibrationError(f"a calibration file is JSON: {exc}") from None
+        return cls.from_dict(data)
