@@ -216,6 +216,7 @@ def cast_beams(
     device_angles_rad: ArrayLike,
     motor_angles_rad: ArrayLike,
     rng: np.random.Generator | None = None,
+    *,
     time_s: ArrayLike | None = None,
     motor_speed_rad_s: ArrayLike | None = None,
 ) -> BeamSamples:
@@ -360,5 +361,5 @@ def continuous_sweep_cloud(
     t = np.arange(scans)[:, None] * period + beam_times(len(dev), scan_frequency_hz, resolution_deg)[None, :]
     motor = motor_start_rad + direction * np.minimum(speed_rad_s * t, span)
     omega = np.where(speed_rad_s * t < span, direction * speed_rad_s, 0.0)
-    samples = cast_beams(scene, calibration, sensor, dev, motor, rng, omega)
+    samples = cast_beams(scene, calibration, sensor, dev, motor, rng, motor_speed_rad_s=omega)
     return samples.points(calibration), samples
