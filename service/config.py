@@ -65,10 +65,23 @@ class DeviceConfig(_Strict):
         return v
 
 
+class OpticsConfig(_Strict):
+    """The scanner's light spot as the cylinder fit models it (``[scanner.optics]``): ``model``
+    "lms1xx" (a spot ``spot_exit_m + divergence_rad x range`` wide, defaults the LMS1xx's 8 mm and
+    15 mrad, SICK 8012471 section 3.6.2; the fit models each beam's expected echo,
+    docs/cylinder.md) or "ideal" (the thin beam). Unset, a simulated rig follows its ``[sim]
+    sensor`` and a real one (an LMS1xx) takes "lms1xx"."""
+
+    model: Literal["ideal", "lms1xx"] | None = None
+    spot_exit_m: float = Field(default=0.008, ge=0.0, le=0.5)
+    divergence_rad: float = Field(default=0.015, ge=0.0, le=0.5)
+
+
 class ScannerConfig(DeviceConfig):
     """The scanner: URL and the scan mode the service sets (an LMS1xx: 25 Hz / 0.25 deg or 50 Hz / 0.5 deg)."""
 
     scan_frequency_hz: Literal[25, 50] = 25
+    optics: OpticsConfig = Field(default_factory=OpticsConfig)
     resolution_deg: float = 0.25
 
     @field_validator("resolution_deg")
@@ -257,6 +270,14 @@ class RigConfig(_Strict):
     @property
     def calibration(self) -> RigCalibration:
         return RigCalibration.from_dict(self.kinematics)
+
+    @property
+    def optics_model(self) -> Literal["ideal", "lms1xx"]:
+        """The beam model of the cylinder fit: ``[scanner.optics] model``, else the simulated
+        rig's sensor, else "lms1xx"."""
+        if self.scanner.optics.model is not None:
+            return self.scanner.optics.model
+        return self.sim.sensor if self.sim is not None else "lms1xx"
 
     @property
     def is_sim(self) -> bool:

@@ -5,8 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
 
-from lrms.cylinder.model import Cylinder, estimate_normals
+from lrms.cylinder.model import Cylinder, estimate_normals, perpendicular_frame
 from lrms.cylinder.options import DetectOptions
 from lrms.cylinder.refine import CylinderFit, refine_cylinder
 from lrms.errors import FitError
@@ -116,23 +117,97 @@ def detect_plane(
     return model.normal, model.offset, mask
 
 
-def detect_cylinder(
+def dominant_planes(
     points: ArrayLike, options: DetectOptions | None = None, rng: np.random.Generator | None = None
+) -> tuple[IntArray, list[tuple[FloatArray, float]]]:
+    """Set aside the large planes of a cloud (walls, floor, ceiling, table tops) before the cylinder
+    RANSAC; returns the indices of the points off them and the planes ``(normal, offset)``.
+
+    Works on a random sample of at most ``options.wall_sample`` points (the RANSAC draws from a few
+    thousand anyway): normals by PCA of ``normal_k`` neighbours, then up to ``max_planes`` plane
+    RANSACs, each on the points left by the previous ones, a point counting for a plane when it
+    lies within ``threshold`` of it and its normal is within about 30 deg of the plane's. A plane
+    is taken only if it holds at least ``wall_min_share`` of the sample and its points span at
+    least ``wall_min_extent`` in both directions of the plane (2nd-98th percentiles); the first
+    plane that fails ends the search. This protects the part: a cylinder of D >= 0.1 m is not a
+    plane at the scanner's noise, and its points whose normals agree with one plane form a strip
+    ``D sin(30 deg)`` wide at most, far narrower than ``wall_min_extent``. A point of the whole
+    cloud is set aside when it lies within ``threshold`` of a taken plane and its nearest sampled
+    point was taken by a plane.
+    """
+    opt = options if options is not None else DetectOptions()
+    g = rng if rng is not None else np.random.default_rng(0)
+    pts = np.asarray(points, dtype=np.float64)
+    n = pts.shape[0]
+    if opt.max_planes <= 0 or n < 3 * max(opt.min_inliers, 10):
+        return np.arange(n), []
+    idx = np.sort(g.choice(n, size=opt.wall_sample, replace=False)) if n > opt.wall_sample else np.arange(n)
+    data = np.hstack([pts[idx], estimate_normals(pts[idx], opt.normal_k)])
+
+    class _Plane(PlaneModel):
+        normal_weight = opt.threshold / float(np.deg2rad(30.0))
+
+    left = np.ones(idx.size, dtype=bool)
+    planes: list[tuple[FloatArray, float]] = []
+    for _ in range(opt.max_planes):
+        rows = np.flatnonzero(left)
+        if rows.size < 3 * opt.min_inliers:
+            break
+        try:
+            model, mask = ransac(
+                data[rows], _Plane, 3, opt.threshold, max_trials=500, min_trials=100, rng=g, score_size=5000
+            )
+        except FitError:
+            break
+        if np.count_nonzero(mask) < opt.wall_min_share * idx.size:
+            break
+        on = pts[idx[rows[mask]]]
+        e1, e2 = perpendicular_frame(model.normal)
+        span = np.ptp(np.percentile(on @ np.stack([e1, e2], axis=1), [2.0, 98.0], axis=0), axis=0)
+        if float(np.min(span)) < opt.wall_min_extent:
+            break
+        planes.append((np.asarray(model.normal, dtype=np.float64), float(model.offset)))
+        left[rows[mask]] = False
+    if not planes:
+        return np.arange(n), []
+    near = np.zeros(n, dtype=bool)
+    for normal, offset in planes:
+        near |= np.abs(pts @ normal - offset) < opt.threshold
+    _, nn = cKDTree(pts[idx]).query(pts, k=1)
+    off = ~near | left[np.asarray(nn, dtype=np.intp)]
+    return np.flatnonzero(off), planes
+
+
+def detect_cylinder(
+    points: ArrayLike,
+    options: DetectOptions | None = None,
+    rng: np.random.Generator | None = None,
+    candidates: ArrayLike | None = None,
 ) -> tuple[Cylinder, tuple[FloatArray, float] | None]:
-    """Rough cylinder (RANSAC, 2 points + normals) and the table plane if one was found."""
+    """Rough cylinder (RANSAC, 2 points + normals) and the table plane if one was found.
+
+    ``candidates``: indices of the points the RANSAC draws from (e.g. those off the background
+    planes, :func:`dominant_planes`); the table plane is searched among all points."""
     opt = options if options is not None else DetectOptions()
     g = rng if rng is not None else np.random.default_rng(0)
     pts = np.asarray(points, dtype=np.float64)
     n = pts.shape[0]
     if n < opt.min_inliers:
         raise FitError(f"too few points to detect a cylinder: {n} (need {opt.min_inliers})")
-    sub = pts[g.choice(n, size=opt.sample_size, replace=False)] if n > opt.sample_size else pts
+    pool = pts if candidates is None else pts[np.asarray(candidates)]
+    if pool.shape[0] < opt.min_inliers:
+        raise FitError(f"too few points off the background planes to detect a cylinder: {pool.shape[0]}")
+    m = pool.shape[0]
+    sub = pool[g.choice(m, size=opt.sample_size, replace=False)] if m > opt.sample_size else pool
     normals = estimate_normals(sub, opt.normal_k)
     data = np.hstack([sub, normals])
 
+    # a footprint widens the apparent part by up to a spot radius on each side (``opt.spot``)
+    spot_r = 0.5 * (opt.spot[0] + opt.spot[1] * float(np.max(np.linalg.norm(sub, axis=1))))
+
     class _Model(CylinderModel):
         normal_weight = opt.normal_weight
-        radius_range = opt.radius_range
+        radius_range = (opt.radius_range[0], opt.radius_range[1] + spot_r)
 
     min_inl = max(opt.min_inliers // 2, int(0.02 * data.shape[0]), 6)
     model, _ = ransac(

@@ -15,6 +15,16 @@ class DetectOptions:
     default :data:`GRAZING_SIGMA`; 0: the plain maximum-likelihood fit), see
     :func:`grazing_weighted_fit`. ``bias_correction``: subtract the fit's second-order bias
     (:func:`second_order_bias`) from a line-of-sight fit.
+
+    Background planes (:func:`lrms.cylinder.detect.dominant_planes`): up to ``max_planes`` planes
+    (walls, floor, ceiling, table tops) are set aside before the cylinder RANSAC, each holding at
+    least ``wall_min_share`` of the working sample and spanning at least ``wall_min_extent`` in both
+    directions of the plane; points count when within ``threshold`` of the plane and their normal
+    within about 30 deg of its normal (a cylinder of D >= 0.1 m is not a plane at that scale).
+    ``max_planes = 0`` switches this off. The planes only steer the detection; the fit and the
+    table's height use every point. ``spot``: the beam's (exit diameter, divergence) when the fit
+    models the footprint: the radius range's upper bound is raised by the spot radius at the
+    candidate's range in the detection stages.
     """
 
     sample_size: int = 3000
@@ -32,3 +42,8 @@ class DetectOptions:
     max_attempts: int = 10
     grazing_sigma: float = -1.0
     bias_correction: bool = True
+    max_planes: int = 6
+    wall_min_share: float = 0.03
+    wall_min_extent: float = 0.5
+    wall_sample: int = 30_000
+    spot: tuple[float, float] = (0.0, 0.0)

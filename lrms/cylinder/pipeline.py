@@ -11,7 +11,8 @@ from numpy.typing import ArrayLike, NDArray
 from lrms import kinematics
 from lrms.covariance import NoiseModel
 from lrms.cylinder.bias import GRAZING_SIGMA, bias_corrected, grazing_weighted_fit
-from lrms.cylinder.detect import _top_height, detect_cylinder, table_height
+from lrms.cylinder.detect import _top_height, detect_cylinder, dominant_planes, table_height
+from lrms.cylinder.footprint import BeamOptics, footprint_fit
 from lrms.cylinder.model import Cylinder, Rays, rays_from_points
 from lrms.cylinder.options import DetectOptions
 from lrms.cylinder.refine import CylinderFit, refine_cylinder
@@ -27,6 +28,36 @@ IntArray = NDArray[np.intp]
 #: and axis (< 0.1 mm) many times over. (0.5 mm let table echoes in front of the base in, +0.04 mm
 #: mean diameter error on 100 sweeps; 1 and 3 mm did not, docs/cylinder.md section 4.)
 BASE_CLEARANCE = 2e-3
+
+
+#: Default tolerance of a nominal diameter, as a share of it.
+NOMINAL_TOLERANCE = 0.1
+
+
+def nominal_diameter_range(nominal: float, tolerance: float | None = None) -> tuple[float, float]:
+    """The diameter range ``nominal +- tolerance`` (m) of the candidates a fit may accept.
+
+    ``tolerance`` defaults to :data:`NOMINAL_TOLERANCE` of the nominal diameter. Bad input (a
+    nominal diameter <= 0 or not finite, a negative tolerance, or one that leaves no positive
+    diameter) raises :class:`FitError`."""
+    if not (isinstance(nominal, int | float) and np.isfinite(nominal) and nominal > 0):
+        raise FitError(f"nominal diameter must be > 0 m, got {nominal!r}")
+    tol = NOMINAL_TOLERANCE * nominal if tolerance is None else tolerance
+    if not (isinstance(tol, int | float) and np.isfinite(tol) and tol > 0):
+        raise FitError(f"diameter tolerance must be > 0 m, got {tolerance!r}")
+    if tol >= nominal:
+        raise FitError(f"diameter tolerance {tol} m leaves no positive diameter below the nominal {nominal} m")
+    return float(nominal - tol), float(nominal + tol)
+
+
+def _radius_ok(cyl: Cylinder, opt: DetectOptions) -> bool:
+    """Is the radius in ``opt.radius_range``, the upper bound raised by the spot radius at the
+    axis' range from the rig (``opt.spot``: the thin-beam fit reads a footprint's edge echoes as
+    the part's surface, up to about a spot radius wider on each side)?"""
+    lo, hi = opt.radius_range
+    exit_d, div = opt.spot
+    allowance = 0.5 * (exit_d + div * float(np.linalg.norm(cyl.point)))
+    return lo <= cyl.radius <= hi + allowance
 
 
 #: Radius offsets (in units of sigma_l) of the extra starts of the line-of-sight fit.
@@ -81,7 +112,7 @@ def _refine_from(
         band = np.sort(np.random.default_rng(1).choice(band, 5000, replace=False))
     rough = refine_cylinder(pts[band], initial, sigma=None, max_rounds=2, gate=3.0)
     lo, hi = opt.radius_range
-    if not lo <= rough.cylinder.radius <= hi:
+    if not _radius_ok(rough.cylinder, opt):
         raise FitError(f"no cylinder found: radius {rough.cylinder.radius:.4g} m outside [{lo}, {hi}] m")
     if line_of_sight:
         assert rays is not None
@@ -95,7 +126,7 @@ def _refine_from(
         if cand.size < opt.min_inliers:
             raise FitError(f"no cylinder found: only {cand.size} points near the candidate")
         fit = refine_cylinder(pts[cand], rough.cylinder, sigma=None, max_rounds=4, gate=3.0)
-    if not lo <= fit.cylinder.radius <= hi:
+    if not _radius_ok(fit.cylinder, opt):
         raise FitError(f"no cylinder found: radius {fit.cylinder.radius:.4g} m outside [{lo}, {hi}] m")
     inl = cand[fit.inliers]
     if inl.size < opt.min_inliers:
@@ -189,8 +220,7 @@ def _select_above_table(
         new = _los_fit(pts[cand], rays.subset(cand), fit.cylinder, opt)
     except FitError:
         return fit
-    lo, hi = opt.radius_range
-    if not lo <= new.cylinder.radius <= hi or new.n_inliers < opt.min_inliers:
+    if not _radius_ok(new.cylinder, opt) or new.n_inliers < opt.min_inliers:
         return fit
     return _reindex(new, cand, pts.shape[0])
 
@@ -205,6 +235,8 @@ def fit_cylinder(
     options: DetectOptions | None = None,
     initial: Cylinder | None = None,
     rng: np.random.Generator | None = None,
+    optics: BeamOptics | None = None,
+    diameter_range: tuple[float, float] | None = None,
 ) -> CylinderFit:
     """Detect and fit the cylinder in a rig-frame cloud.
 
@@ -212,9 +244,24 @@ def fit_cylinder(
     ``rays`` if given, else from inverting Eq. 1 with the rig at the origin and inner parameter
     ``p``. Otherwise the orthogonal-distance fit with isotropic noise (``sigma`` estimated from
     the residuals). ``initial`` skips detection. Raises :class:`FitError` when no cylinder is found.
+
+    ``optics``: the beam's footprint (:class:`~lrms.cylinder.footprint.BeamOptics`); given, the
+    line-of-sight fit is finished by :func:`~lrms.cylinder.footprint.footprint_fit` (the expected
+    echo of each beam's spot, the edge family chosen by the data) instead of the thin beam's grazing
+    weights and bias correction. ``diameter_range`` (m): only cylinders of a diameter in it are
+    candidates (a nominal diameter and its tolerance, :func:`nominal_diameter_range`); the
+    detection stages allow for the footprint's widening of the thin-beam fit (the spot diameter
+    at the candidate's range on top of the upper bound).
     """
     nm = noise if noise is not None else NoiseModel()
     opt = options if options is not None else DetectOptions(threshold=max(0.03, 2.5 * nm.sigma_l))
+    if diameter_range is not None:
+        d_lo, d_hi = diameter_range
+        if not (np.isfinite(d_lo) and np.isfinite(d_hi) and 0 < d_lo < d_hi):
+            raise FitError(f"diameter range must be 0 < low < high, got {diameter_range}")
+        opt = replace(opt, radius_range=(d_lo / 2, d_hi / 2))
+    if optics is not None:
+        opt = replace(opt, spot=(optics.exit_diameter_m, optics.divergence_rad))
     g = rng if rng is not None else np.random.default_rng(0)
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
@@ -231,6 +278,7 @@ def fit_cylinder(
     plane: tuple[FloatArray, float] | None = None
     errors: list[str] = []
     n_try = 1 if initial is not None else max(opt.attempts, opt.max_attempts, 1)
+    off_walls = dominant_planes(pts, opt, g)[0] if initial is None else None
     for attempt in range(n_try):
         if attempt >= max(opt.attempts, 1) and best is not None and _noise_explains(best):
             break
@@ -238,7 +286,7 @@ def fit_cylinder(
             if initial is not None:
                 start, pl = initial, None
             else:
-                start, pl = detect_cylinder(pts, opt, g)
+                start, pl = detect_cylinder(pts, opt, g, candidates=off_walls)
             use = _off_support(pts, start, pl, opt)
             fit = _refine_from(pts[use], start, line_of_sight, None if rr is None else rr.subset(use), opt)
             fit = _reindex(fit, use, pts.shape[0])
@@ -265,9 +313,19 @@ def fit_cylinder(
                 best = _select_above_table(pts, rr, best, table, opt)
                 up, height, origin = table
                 base = best.cylinder.point + (height - float((best.cylinder.point - origin) @ up)) * up
-    if rr is not None:
+    footprint_won = False
+    if rr is not None and optics is not None:
+        fp = footprint_fit(pts, rr, best, optics)
+        footprint_won = fp.extra.get("edge_mode_first", -1.0) >= 0
+        best = fp if footprint_won else replace(best, extra=fp.extra)  # the thin beam explains the data best
+    if rr is not None and not footprint_won:
         lat = GRAZING_SIGMA if opt.grazing_sigma < 0 else opt.grazing_sigma
         best = grazing_weighted_fit(pts, rr, best, lat, radius_range=opt.radius_range)
         if opt.bias_correction:
             best = bias_corrected(best, rr.subset(best.inliers))
+    if diameter_range is not None and not diameter_range[0] <= best.diameter <= diameter_range[1]:
+        raise FitError(
+            f"no cylinder of the nominal diameter found: {1e3 * best.diameter:.1f} mm is outside"
+            f" [{1e3 * diameter_range[0]:.1f}, {1e3 * diameter_range[1]:.1f}] mm"
+        )
     return replace(best, plane=plane, base_point=base, n_points=int(pts.shape[0]))
