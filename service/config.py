@@ -70,7 +70,8 @@ class OpticsConfig(_Strict):
     "lms1xx" (a spot ``spot_exit_m + divergence_rad x range`` wide, defaults the LMS1xx's 8 mm and
     15 mrad, SICK 8012471 section 3.6.2; the fit models each beam's expected echo,
     docs/cylinder.md) or "ideal" (the thin beam). Unset, a simulated rig follows its ``[sim]
-    sensor`` and a real one (an LMS1xx) takes "lms1xx"."""
+    sensor`` and a real one takes "ideal": the footprint fit is opt-in until it meets its accuracy
+    goal (docs/cylinder.md section 7)."""
 
     model: Literal["ideal", "lms1xx"] | None = None
     spot_exit_m: float = Field(default=0.008, ge=0.0, le=0.5)
@@ -274,10 +275,10 @@ class RigConfig(_Strict):
     @property
     def optics_model(self) -> Literal["ideal", "lms1xx"]:
         """The beam model of the cylinder fit: ``[scanner.optics] model``, else the simulated
-        rig's sensor, else "lms1xx"."""
+        rig's sensor, else "ideal"."""
         if self.scanner.optics.model is not None:
             return self.scanner.optics.model
-        return self.sim.sensor if self.sim is not None else "lms1xx"
+        return self.sim.sensor if self.sim is not None else "ideal"
 
     @property
     def is_sim(self) -> bool:
