@@ -155,7 +155,7 @@ def dominant_planes(
             break
         try:
             model, mask = ransac(
-                data[rows], _Plane, 3, opt.threshold, max_trials=300, min_trials=30, rng=g, score_size=3000
+                data[rows], _Plane, 3, opt.threshold, max_trials=500, min_trials=100, rng=g, score_size=5000
             )
         except FitError:
             break
