@@ -22,7 +22,13 @@ or a diameter more than 50 % off: "gross"), mean error of the diameter (mm) +- i
 the spread (std, mm), the mean GUM standard uncertainty the fit reports, and the share of sweeps
 whose d +- 2 u covers the truth.
 
-Run: ``.venv/bin/python -m bench.bench_sensor_model [--sweeps 20] [--only seed003|parts] [--clouds roi,room]``.
+``--fit footprint`` fits the same clouds with the beam-footprint model (``fit_cylinder(...,
+optics=BeamOptics())``: LMS1xx spot, edge family and threshold estimated, not told) and a nominal
+diameter (+-10 %); its u is the fit's with the edge-model row (``extra["edge_model_u_m"]``) in
+quadrature. ``--fit both`` prints both fits per case, on the same clouds.
+
+Run: ``.venv/bin/python -m bench.bench_sensor_model [--sweeps 20] [--only seed003|parts] [--clouds roi,room]
+[--fit thin|footprint|both]``.
 """
 
 from __future__ import annotations
@@ -37,7 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrms.covariance import NoiseModel
-from lrms.cylinder import fit_cylinder
+from lrms.cylinder import BeamOptics, fit_cylinder, nominal_diameter_range
 from lrms.errors import LrmsError
 from lrms.kinematics import RigCalibration
 from lrms.uncertainty import gum_interval
@@ -120,32 +126,43 @@ class Row:
         )
 
 
-def run_case(g: Geometry, draw: Draw, sweeps: int, cloud: str, seed: int) -> Row:
+def run_case(g: Geometry, draw: Draw, sweeps: int, cloud: str, seed: int, fits: list[str]) -> dict[str, Row]:
     rng = np.random.default_rng(seed)
     noise = NoiseModel()
-    row = Row()
+    rows = {f: Row() for f in fits}
     for _ in range(sweeps):
         ranges, valid = draw(rng)
         pts = g.origins[valid] + ranges[valid, None] * g.dirs[valid]
         if cloud == "roi":
             pts = pts[np.all((pts >= g.roi_lo) & (pts <= g.roi_hi), axis=1)]
-        row.points += pts.shape[0]
-        row.sweeps += 1
-        try:
-            fit = fit_cylinder(pts, noise=noise, rng=rng)
-        except LrmsError:
-            row.failed += 1
-            continue
-        err = fit.diameter - g.diameter
-        if abs(err) > 0.5 * g.diameter:
-            row.gross += 1
-            continue
-        row.errors.append(err)
-        row.u.append(gum_interval(fit).std)
-    return row
+        fit_seed = int(rng.integers(1 << 31))
+        for kind, row in rows.items():
+            row.points += pts.shape[0]
+            row.sweeps += 1
+            try:
+                if kind == "thin":
+                    fit = fit_cylinder(pts, noise=noise, rng=np.random.default_rng(fit_seed))
+                else:
+                    fit = fit_cylinder(
+                        pts,
+                        noise=noise,
+                        rng=np.random.default_rng(fit_seed),
+                        optics=BeamOptics(),
+                        diameter_range=nominal_diameter_range(g.diameter),
+                    )
+            except LrmsError:
+                row.failed += 1
+                continue
+            err = fit.diameter - g.diameter
+            if abs(err) > 0.5 * g.diameter:
+                row.gross += 1
+                continue
+            row.errors.append(err)
+            row.u.append(float(np.hypot(gum_interval(fit).std, fit.extra.get("edge_model_u_m", 0.0))))
+    return rows
 
 
-def bench_scene(g: Geometry, sweeps: int, clouds: list[str], family: bool, seed: int) -> None:
+def bench_scene(g: Geometry, sweeps: int, clouds: list[str], family: bool, seed: int, fits: list[str]) -> None:
     base = LMS1xxSensor()
     cases: list[tuple[str, Draw]] = [("ideal thin beam (seed 003 noise)", ideal_draw(g))]
     edges = EDGE_FAMILY if family else [(0.3, "weighted")]
@@ -159,9 +176,10 @@ def bench_scene(g: Geometry, sweeps: int, clouds: list[str], family: bool, seed:
     for cloud in clouds:
         for label, draw in cases:
             t0 = time.perf_counter()
-            row = run_case(g, draw, sweeps, cloud, seed)
+            rows = run_case(g, draw, sweeps, cloud, seed, fits)
             dt = time.perf_counter() - t0
-            print(f"  {cloud:4s} {label:36s} {row.text()}  ({dt:5.1f} s)", flush=True)
+            for kind, row in rows.items():
+                print(f"  {cloud:4s} {kind:9s} {label:36s} {row.text()}  ({dt:5.1f} s)", flush=True)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -170,7 +188,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--only", choices=("seed003", "parts"), default=None)
     parser.add_argument("--clouds", default="roi,room", help="comma list of roi, room")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--fit", choices=("thin", "footprint", "both"), default="thin")
+    parser.add_argument("--edges", default=None, help="comma list of THR:MODE (0.3:weighted, 0.1:first) for the family")
     args = parser.parse_args(argv)
+    fits = ["thin", "footprint"] if args.fit == "both" else [args.fit]
+    if args.edges:
+        EDGE_FAMILY[:] = [(float(e.split(":")[0]), e.split(":")[1]) for e in args.edges.split(",")]
     clouds = [c for c in args.clouds.split(",") if c]
     if not clouds or any(c not in ("roi", "room") for c in clouds):
         parser.error("--clouds takes roi and/or room")
@@ -188,7 +211,7 @@ def main(argv: list[str] | None = None) -> None:
         t0 = time.perf_counter()
         g = cast_geometry(label, part_in_room(diameter, distance), diameter, sensor)
         print(f"\n(ray cast of {label}: {time.perf_counter() - t0:.1f} s)")
-        bench_scene(g, args.sweeps, clouds, family, args.seed)
+        bench_scene(g, args.sweeps, clouds, family, args.seed, fits)
 
 
 if __name__ == "__main__":

@@ -109,10 +109,24 @@ class MotorConfig(DeviceConfig):
         }
 
 
+class OpticsConfig(_Strict):
+    """The scanner's light spot as the cylinder fit models it (``[scanner.optics]``): ``model``
+    "lms1xx" (a spot ``spot_exit_m + divergence_rad x range`` wide, defaults the LMS1xx's 8 mm and
+    15 mrad, SICK 8012471 section 3.6.2; the fit models each beam's expected echo,
+    docs/cylinder.md) or "ideal" (the thin beam). Unset, a simulated rig follows its ``[sim]
+    sensor`` and a real one takes "ideal": the footprint fit is opt-in until it meets its accuracy
+    goal (docs/cylinder.md section 7)."""
+
+    model: Literal["ideal", "lms1xx"] | None = None
+    spot_exit_m: float = Field(default=0.008, ge=0.0, le=0.5)
+    divergence_rad: float = Field(default=0.015, ge=0.0, le=0.5)
+
+
 class ScannerConfig(DeviceConfig):
     """The scanner: URL and the scan mode the service sets (an LMS1xx: 25 Hz / 0.25 deg or 50 Hz / 0.5 deg)."""
 
     scan_frequency_hz: Literal[25, 50] = 25
+    optics: OpticsConfig = Field(default_factory=OpticsConfig)
     resolution_deg: float = 0.25
 
     @field_validator("resolution_deg")
@@ -332,6 +346,14 @@ class RigConfig(_Strict):
     def sim_kinematics(self) -> dict[str, Any]:
         """The simulated rig's true ``[kinematics]``: ours updated by ``[sim] rig_errors``."""
         return {**self.kinematics, **(self.sim.rig_errors if self.sim is not None else {})}
+
+    @property
+    def optics_model(self) -> Literal["ideal", "lms1xx"]:
+        """The beam model of the cylinder fit: ``[scanner.optics] model``, else the simulated
+        rig's sensor, else "ideal"."""
+        if self.scanner.optics.model is not None:
+            return self.scanner.optics.model
+        return self.sim.sensor if self.sim is not None else "ideal"
 
     @property
     def is_sim(self) -> bool:

@@ -74,6 +74,8 @@ def cylinder_result(
     rng: np.random.Generator,
     isotropic_sigma: float | None = None,
     world_from_rig: FloatArray | None = None,
+    optics: Any = None,
+    diameter_range: tuple[float, float] | None = None,
 ) -> tuple[dict[str, Any], Any, Any]:
     """Cylinder fit, its three intervals and the JSON result: the one implementation behind the
     service's cylinder measurements and ``lrms fit --model cylinder``.
@@ -102,7 +104,16 @@ def cylinder_result(
     kk = DEFAULT_K if k is None else float(k)
     pts = np.asarray(points, dtype=np.float64)
     line_of_sight = rays is not None
-    fit = fit_cylinder(pts, line_of_sight=line_of_sight, p=p, noise=noise, rays=rays, rng=rng)
+    fit = fit_cylinder(
+        pts,
+        line_of_sight=line_of_sight,
+        p=p,
+        noise=noise,
+        rays=rays,
+        rng=rng,
+        optics=optics if line_of_sight else None,
+        diameter_range=diameter_range,
+    )
     cyl = fit.cylinder
     sigma_l = noise.sigma_l if line_of_sight or isotropic_sigma is not None else float(fit.rmse)
     if line_of_sight:
@@ -161,6 +172,8 @@ def cylinder_result(
             "e2": _vec(rot @ fit.frame[1]),
             "matrix": np.asarray(fit.covariance, dtype=np.float64).tolist(),
         },
+        "footprint": _footprint_json(fit.extra) if optics is not None and line_of_sight else None,
+        "diameter_range_m": None if diameter_range is None else [float(diameter_range[0]), float(diameter_range[1])],
         "uncertainty": {
             "k": kk,
             "d_min_m": float(crit.d_min),
@@ -178,6 +191,29 @@ def cylinder_result(
         },
     }
     return result, fit, crit
+
+
+def _footprint_json(extra: dict[str, float]) -> dict[str, Any]:
+    """The footprint fit's findings (:func:`lrms.cylinder.footprint_fit`): the edge family the data
+    chose, the fitted threshold, the thin-beam diameter and the edge model's budget row."""
+    code = extra.get("edge_mode_first", -1.0)
+    tau = extra.get("edge_threshold", float("nan"))
+    return {
+        "edge_mode": {1.0: "first", 0.0: "weighted"}.get(code, "thin"),
+        "edge_threshold": float(tau) if np.isfinite(tau) else None,
+        "edge_model_u_m": float(extra.get("edge_model_u_m", 0.0)),
+        "thin_beam_diameter_m": extra.get("thin_beam_diameter_m"),
+    }
+
+
+def optics_for(config: RigConfig) -> Any:
+    """The fit's beam optics from ``[scanner.optics]`` (``None``: the thin beam)."""
+    if config.optics_model == "ideal":
+        return None
+    from lrms.cylinder import BeamOptics
+
+    o = config.scanner.optics
+    return BeamOptics(exit_diameter_m=o.spot_exit_m, divergence_rad=o.divergence_rad)
 
 
 def fit_cylinder_result(
@@ -211,9 +247,20 @@ def fit_cylinder_result(
         monte_carlo=request.options.monte_carlo,
         rng=np.random.default_rng(seed),
         world_from_rig=cal.world_from_rig,
+        optics=optics_for(config),
+        diameter_range=_diameter_range(request),
     )
     result["fit_seed"] = seed
     return result
+
+
+def _diameter_range(request: MeasurementRequest) -> tuple[float, float] | None:
+    o = request.options
+    if o.nominal_diameter_m is None:
+        return None
+    from lrms.cylinder import nominal_diameter_range
+
+    return nominal_diameter_range(o.nominal_diameter_m, o.diameter_tolerance_m)
 
 
 def fit_elbow_result(

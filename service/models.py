@@ -91,6 +91,15 @@ class FitOptions(_Strict):
     )
     ratio: float | None = Field(default=None, ge=0.5, le=20.0, description="elbow: fixed A/D ratio; none = free")
     flange: bool = Field(default=False, description="elbow: the joint has flanges (fit their diameter Df)")
+    nominal_diameter_m: float | None = Field(
+        default=None,
+        gt=0.0,
+        le=10.0,
+        description="cylinder: nominal diameter (m); other sizes are rejected",
+    )
+    diameter_tolerance_m: float | None = Field(
+        default=None, gt=0.0, le=10.0, description="cylinder: accepted deviation from nominal_diameter_m (default 10 %)"
+    )
 
     @model_validator(mode="after")
     def _enough_replicas(self) -> FitOptions:
@@ -110,6 +119,13 @@ class MeasurementRequest(_Strict):
         o = self.options
         if self.target != "elbow" and (o.degree_deg is not None or o.ratio is not None or o.flange):
             raise ValueError("options degree_deg, ratio and flange apply to target 'elbow' only")
+        if self.target != "cylinder" and (o.nominal_diameter_m is not None or o.diameter_tolerance_m is not None):
+            raise ValueError("options nominal_diameter_m and diameter_tolerance_m apply to target 'cylinder' only")
+        if o.diameter_tolerance_m is not None and o.nominal_diameter_m is None:
+            raise ValueError("diameter_tolerance_m needs nominal_diameter_m")
+        tol, nominal = o.diameter_tolerance_m, o.nominal_diameter_m
+        if tol is not None and nominal is not None and tol >= nominal:
+            raise ValueError("diameter_tolerance_m must be below nominal_diameter_m")
         return self
 
 

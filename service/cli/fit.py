@@ -53,6 +53,26 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--monte-carlo", type=int, default=0, metavar="N", help="also a Monte Carlo interval from N replicas"
     )
     cyl.add_argument("--seed", type=int, default=0, help="random seed (RANSAC, Monte Carlo)")
+    cyl.add_argument(
+        "--nominal-diameter", type=float, default=None, metavar="D", help="nominal diameter (m): reject other sizes"
+    )
+    cyl.add_argument(
+        "--diameter-tolerance",
+        type=float,
+        default=None,
+        metavar="T",
+        help="accepted deviation from the nominal diameter (m; default 10 %% of it)",
+    )
+    cyl.add_argument(
+        "--optics",
+        choices=("lms1xx", "ideal"),
+        default="ideal",
+        help="beam model of the line-of-sight fit: ideal (thin beam, default) or lms1xx (footprint, expected echo)",
+    )
+    cyl.add_argument("--spot-exit-mm", type=float, default=8.0, help="light spot at the front screen, mm (LMS1xx: 8)")
+    cyl.add_argument(
+        "--divergence-mrad", type=float, default=15.0, help="beam divergence, full angle, mrad (LMS1xx: 15)"
+    )
     elbow = parser.add_argument_group("elbow")
     elbow.add_argument(
         "--degree", default=None, help="joint degree: 90, 45, any angle in deg (default: from the cloud)"
@@ -118,7 +138,7 @@ def fit_cylinder_file(args: argparse.Namespace, points: Any, calibration: Any = 
     import numpy as np
 
     from lrms.covariance import NoiseModel
-    from lrms.cylinder import rays_from_points
+    from lrms.cylinder import BeamOptics, nominal_diameter_range, rays_from_points
     from lrms.errors import LrmsError
     from service.fitting import cylinder_result
 
@@ -128,6 +148,20 @@ def fit_cylinder_file(args: argparse.Namespace, points: Any, calibration: Any = 
         raise LrmsError(f"--sigma-l-mm must be > 0, got {args.sigma_l_mm}")
     if args.k is not None and not 0 < args.k <= 10:
         raise LrmsError(f"--k must be in (0, 10], got {args.k}")
+    if not (np.isfinite(args.spot_exit_mm) and args.spot_exit_mm >= 0):
+        raise LrmsError(f"--spot-exit-mm must be >= 0, got {args.spot_exit_mm}")
+    if not (np.isfinite(args.divergence_mrad) and args.divergence_mrad >= 0):
+        raise LrmsError(f"--divergence-mrad must be >= 0, got {args.divergence_mrad}")
+    if args.diameter_tolerance is not None and args.nominal_diameter is None:
+        raise LrmsError("--diameter-tolerance needs --nominal-diameter")
+    diameter_range = None
+    if args.nominal_diameter is not None:
+        if not (np.isfinite(args.nominal_diameter) and args.nominal_diameter > 0):
+            raise LrmsError(f"--nominal-diameter must be > 0 m, got {args.nominal_diameter}")
+        diameter_range = nominal_diameter_range(args.nominal_diameter, args.diameter_tolerance)
+    optics = None
+    if args.optics == "lms1xx":
+        optics = BeamOptics(exit_diameter_m=args.spot_exit_mm / 1e3, divergence_rad=args.divergence_mrad / 1e3)
     noise = NoiseModel() if args.sigma_l_mm is None else NoiseModel(sigma_l=args.sigma_l_mm / 1e3)
     pts = np.asarray(points, dtype=np.float64)
     rays = rays_from_points(pts, args.p, noise) if args.line_of_sight else None
@@ -148,6 +182,8 @@ def fit_cylinder_file(args: argparse.Namespace, points: Any, calibration: Any = 
         monte_carlo=args.monte_carlo or 0,
         rng=np.random.default_rng(args.seed),
         isotropic_sigma=None if args.sigma_l_mm is None else noise.sigma_l,
+        optics=optics,
+        diameter_range=diameter_range,
     )
     result: dict[str, Any] = {"model": "cylinder", "file": str(args.file), **core}
     if args.plot:
@@ -177,6 +213,14 @@ def _print_text(result: dict[str, Any]) -> None:
     )
     g = u["gum"]
     print(f"GUM: u(d) = {g['std_m'] * 1e3:.3f} mm, 95 %: [{g['low_m'] * 1e3:.3f}, {g['high_m'] * 1e3:.3f}] mm")
+    fp = result.get("footprint")
+    if fp:
+        thin = fp["thin_beam_diameter_m"]
+        tau = "" if fp["edge_threshold"] is None else f", threshold {100 * fp['edge_threshold']:.0f} %"
+        print(
+            f"footprint: edge model {fp['edge_mode']}{tau}, u(edge) = {fp['edge_model_u_m'] * 1e3:.3f} mm"
+            + ("" if thin is None else f", thin-beam fit {thin * 1e3:.3f} mm")
+        )
     if u.get("monte_carlo"):
         m = u["monte_carlo"]
         print(f"Monte Carlo ({m['n']}): 95 %: [{m['low_m'] * 1e3:.3f}, {m['high_m'] * 1e3:.3f}] mm")

@@ -1,0 +1,157 @@
+"""The line-of-sight fit's estimator refinements: grazing weights and the second-order (Box)
+bias correction."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lrms.cylinder.model import Cylinder, Rays, _dot
+from lrms.cylinder.options import DetectOptions
+from lrms.cylinder.refine import CylinderFit, _covariance, _Frame, los_jacobian, los_residuals, refine_cylinder
+from lrms.errors import FitError
+
+FloatArray = NDArray[np.float64]
+
+#: Lateral standard deviation (m) of a beam's footprint in the estimator's weights
+#: (:func:`grazing_weighted_fit`): a beam meeting the surface at incidence ``i`` is weighted by
+#: ``1 / (sigma_l^2 + (tan(i) GRAZING_SIGMA)^2)``. 0 gives the plain maximum-likelihood fit.
+GRAZING_SIGMA = 2e-4
+#: Smallest cosine of incidence in those weights (a beam that misses the model counts as this).
+_COS_FLOOR = 0.01
+
+
+def incidence_cosines(cyl: Cylinder, rays: Rays) -> FloatArray:
+    """|cos| of the angle between each beam and the surface normal where it meets ``cyl``
+    (0 for a beam that misses)."""
+    t, gap = cyl.ray_range(rays.origins, rays.dirs)
+    q = cyl.radial(rays.origins + t[:, None] * rays.dirs)
+    c = np.abs(_dot(q, rays.dirs)) / np.maximum(np.linalg.norm(q, axis=1), 1e-300)
+    return np.asarray(np.where(gap > 0, 0.0, c), dtype=np.float64)
+
+
+def grazing_sigmas(cyl: Cylinder, rays: Rays, sigma_lat: float) -> FloatArray:
+    """Per-beam ``sqrt(sigma_l^2 + (tan(incidence) sigma_lat)^2)`` at the model ``cyl``."""
+    c = np.maximum(incidence_cosines(cyl, rays), _COS_FLOOR)
+    tan = np.sqrt(1.0 - c * c) / c
+    return np.asarray(np.sqrt(rays.sigma_l**2 + (tan * sigma_lat) ** 2), dtype=np.float64)
+
+
+def grazing_weighted_fit(
+    pts: FloatArray,
+    rays: Rays,
+    fit: CylinderFit,
+    sigma_lat: float = GRAZING_SIGMA,
+    rounds: int = 3,
+    radius_range: tuple[float, float] | None = None,
+) -> CylinderFit:
+    """Refit ``fit``'s inliers with the near-grazing beams' leverage moderated.
+
+    The hit range of a beam near the silhouette varies like the square root of the radius, so
+    the few beams at cos(incidence) of 0.03-0.1 carry much of the Fisher information while the
+    linearised model fails there, and a clutter point in front of the part on such a beam pulls
+    the fit hardest. The weights ``1 / (sigma_l^2 + (tan(i) sigma_lat)^2)`` (a lateral term of
+    the order of the beam's pointing / footprint) are recomputed at the current solution for
+    ``rounds`` rounds. An estimator choice: the Cramer-Rao bound is unchanged. The covariance
+    is the sandwich ``A^-1 J^T V J A^-1`` of this weighted fit under the rig's noise
+    (``V = sigma_l^2 / s_i^2``), ``chi2_dof`` the plain one with ``sigma_l``. Keeps ``fit`` if a
+    refit fails or leaves ``radius_range`` (the detection's; default ``DetectOptions()``'s).
+    """
+    if sigma_lat <= 0 or not fit.line_of_sight:
+        return fit
+    idx = fit.inliers
+    sub_pts, sub = pts[idx], rays.subset(idx)
+    cyl = fit.cylinder
+    work = np.arange(idx.size)
+    if idx.size > 10_000:  # all rounds but the last on a subset (large clouds)
+        work = np.sort(np.random.default_rng(3).choice(idx.size, 5_000, replace=False))
+    try:
+        for k in range(rounds):
+            use = work if k < rounds - 1 else np.arange(idx.size)
+            part = sub.subset(use)
+            sig = grazing_sigmas(cyl, part, sigma_lat)
+            weighted = Rays(part.origins, part.dirs, part.ranges, sig, part.sigma_perp)
+            # a large cloud's last round starts next to its optimum: a few LM steps suffice
+            nfev = 200 if use.size <= 10_000 or k < rounds - 1 else 4
+            cyl = refine_cylinder(sub_pts[use], cyl, rays=weighted, gate=np.inf, max_rounds=1, max_nfev=nfev).cylinder
+    except FitError:
+        return fit
+    lo, hi = DetectOptions().radius_range if radius_range is None else radius_range
+    if not lo <= cyl.radius <= hi:
+        return fit
+    sig = grazing_sigmas(cyl, sub, sigma_lat)
+    frame = _Frame.at(cyl)
+    jac = los_jacobian(np.zeros(5), frame, sub.origins, sub.dirs, sig, sub.sigma_perp)
+    var = np.concatenate([np.square(sub.sigma_l / sig), np.ones(idx.size)])
+    a_inv = _covariance(jac)
+    cov = a_inv @ (jac.T @ (var[:, None] * jac)) @ a_inv
+    res = los_residuals(np.zeros(5), frame, sub.origins, sub.dirs, sub.ranges, sub.sigma_l, sub.sigma_perp)
+    t, _ = cyl.ray_range(sub.origins, sub.dirs)
+    return replace(
+        fit,
+        cylinder=cyl,
+        rmse=float(np.sqrt(np.mean(np.square(sub.ranges - t)))),
+        covariance=np.asarray(cov, dtype=np.float64),
+        frame=(frame.e1, frame.e2),
+        chi2_dof=float(np.sum(res * res) / max(idx.size - 5, 1)),
+        sigma_scale=1.0,
+        extra={**fit.extra, "grazing_sigma_m": float(sigma_lat)},
+    )
+
+
+def second_order_bias(fit: CylinderFit, rays: Rays) -> FloatArray:
+    """Second-order bias ``E[theta_hat] - theta`` (Box 1971) of a line-of-sight fit, in its frame.
+
+    ``rays``: the fit's inlier beams (one per inlier, as :func:`fit_cylinder` builds them). For the
+    fit ``min sum ((l_i - t_i(theta)) / s_i)^2`` the bias to order ``sigma^2`` is
+    ``-1/2 A^-1 sum J_i tr(H_i C) / s_i^2``, with ``J_i, H_i`` the gradient and Hessian of the
+    predicted range ``t_i``, ``A = sum J_i J_i^T / s_i^2`` and ``C`` the parameters' covariance
+    (:attr:`CylinderFit.covariance`). The local Hessian of a near-tangent beam's range is
+    singular (the range goes like a square root at the silhouette), so ``tr(H_i C)`` is replaced
+    by what it stands for, ``2 (E[t_i(theta + delta)] - t_i(theta))`` for ``delta ~ N(0, C)``,
+    taken with the 3-point Gauss-Hermite rule along each principal axis of ``C``: nodes ``0`` and
+    ``+-sqrt(3 lambda_k) v_k`` (the unscented transform's points for ``kappa = 3 - n``), exact for
+    polynomials up to degree 5. ``s_i``: the grazing weights' sigmas when the fit carries them
+    (``extra["grazing_sigma_m"]``), else ``sigma_l``; for weights computed at the solution this is
+    the leading term only. Miss rows (beams passing the model) take part through their whitened
+    miss distance. Checked by Monte Carlo in tests/core/test_cylinder.py and docs/cylinder.md.
+    """
+    if not fit.line_of_sight:
+        raise FitError("the second-order bias is defined for a line-of-sight fit")
+    if rays.ranges.shape[0] != fit.inliers.size:
+        raise FitError("one beam per inlier is needed for the bias")
+    frame = _fit_frame(fit)
+    lat = fit.extra.get("grazing_sigma_m", 0.0)
+    sig = grazing_sigmas(fit.cylinder, rays, lat) if lat > 0 else np.broadcast_to(rays.sigma_l, rays.ranges.shape)
+    lam, vec = np.linalg.eigh(0.5 * (fit.covariance + fit.covariance.T))
+    steps = (np.sqrt(3.0 * np.maximum(lam, 0.0)) * vec).T  # rows: the Gauss-Hermite nodes' offsets
+
+    def res(th: FloatArray) -> FloatArray:
+        return los_residuals(th, frame, rays.origins, rays.dirs, rays.ranges, sig, rays.sigma_perp)
+
+    centre = res(np.zeros(5))
+    second = np.zeros_like(centre)
+    for step in steps:  # 5 directions, each a vectorized pass over the beams
+        second += (res(step) + res(-step) - 2.0 * centre) / 3.0
+    jac = los_jacobian(np.zeros(5), frame, rays.origins, rays.dirs, sig, rays.sigma_perp)
+    # whitened residuals r_i = (l_i - t_i) / s_i: J_r = -J_t / s_i and second = -"tr(H_i C)" / s_i
+    return np.asarray(-0.5 * (_covariance(jac) @ (jac.T @ second)), dtype=np.float64)
+
+
+def _fit_frame(fit: CylinderFit) -> _Frame:
+    """The local frame of ``fit``'s covariance (theta = 0 at its solution)."""
+    cyl = fit.cylinder
+    return _Frame(cyl.point, cyl.direction, fit.frame[0], fit.frame[1], cyl.radius)
+
+
+def bias_corrected(fit: CylinderFit, rays: Rays) -> CylinderFit:
+    """``fit`` with its :func:`second_order_bias` subtracted (``rays``: its inlier beams). The
+    covariance is kept (the correction is of second order); ``extra["bias_correction_diameter_m"]``
+    records what was subtracted from the diameter."""
+    b = second_order_bias(fit, rays)
+    new = _fit_frame(fit).cylinder(-b)
+    if not new.radius > 0:
+        raise FitError("the bias correction gave a non-positive radius")
+    return replace(fit, cylinder=new, extra={**fit.extra, "bias_correction_diameter_m": float(2.0 * b[4])})

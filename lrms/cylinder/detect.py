@@ -1,0 +1,332 @@
+"""Detection: the cylinder RANSAC model, the support plane (table) and its height under the part,
+a free plane RANSAC."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
+
+from lrms.cylinder.model import Cylinder, estimate_normals, perpendicular_frame
+from lrms.cylinder.options import DetectOptions
+from lrms.cylinder.refine import CylinderFit, refine_cylinder
+from lrms.errors import FitError
+from lrms.ransac import PlaneModel, ransac
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+
+class CylinderModel:
+    """RANSAC model on rows ``(x, y, z, nx, ny, nz)``: a cylinder from 2 points with normals.
+
+    ``normal_weight`` (m per rad) converts the angle between a point's normal and the model's
+    radial direction into distance in the residual.
+    """
+
+    normal_weight = 0.02
+    radius_range: tuple[float, float] = (0.005, 2.0)
+
+    def __init__(self) -> None:
+        self.cylinder: Cylinder | None = None
+
+    def estimate(self, data: FloatArray) -> bool:
+        d = np.asarray(data, dtype=np.float64)
+        if d.shape[0] < 2 or d.shape[1] < 6:
+            return False
+        if d.shape[0] > 2:
+            return self._estimate_many(d)
+        p1, n1, p2, n2 = d[0, :3], d[0, 3:6], d[1, :3], d[1, 3:6]
+        w = np.cross(n1, n2)
+        sw = float(np.linalg.norm(w))
+        if sw < 0.05:  # normals nearly parallel: axis undefined
+            return False
+        w = w / sw
+        # closest points of the lines p1 + s n1 and p2 + t n2
+        r12 = p1 - p2
+        b = float(n1 @ n2)
+        denom = 1.0 - b * b
+        e, f = float(n1 @ r12), float(n2 @ r12)
+        s = (b * f - e) / denom
+        t = (f - b * e) / denom
+        c = 0.5 * ((p1 + s * n1) + (p2 + t * n2))
+        cyl_r = float(np.linalg.norm(Cylinder(c, w, 1.0).radial(p1)))
+        lo, hi = self.radius_range
+        if not (lo <= cyl_r <= hi):
+            return False
+        self.cylinder = Cylinder(c, w, cyl_r)
+        return True
+
+    def _estimate_many(self, d: FloatArray) -> bool:
+        """Least-squares polish on many inliers (orthogonal distance), from a 2-point start."""
+        if self.cylinder is None:
+            # start from the best pair among a few
+            best: Cylinder | None = None
+            for i in range(1, min(d.shape[0], 8)):
+                m = CylinderModel()
+                if m.estimate(d[[0, i]]):
+                    best = m.cylinder
+                    break
+            if best is None:
+                return False
+            self.cylinder = best
+        try:
+            fit = refine_cylinder(d[:, :3], self.cylinder, rays=None, sigma=1.0, max_rounds=1)
+        except FitError:
+            return False
+        self.cylinder = fit.cylinder
+        return True
+
+    def residuals(self, data: FloatArray) -> FloatArray:
+        if self.cylinder is None:
+            raise FitError("model not estimated")
+        d = np.asarray(data, dtype=np.float64)
+        rad = self.cylinder.radial(d[:, :3])
+        dist = np.linalg.norm(rad, axis=1)
+        res = np.abs(dist - self.cylinder.radius)
+        if d.shape[1] >= 6:
+            cosang = np.abs(np.sum(rad * d[:, 3:6], axis=1)) / np.maximum(dist, 1e-12)
+            res = res + self.normal_weight * np.arccos(np.clip(cosang, 0.0, 1.0))
+        return np.asarray(res, dtype=np.float64)
+
+
+def detect_plane(
+    points: ArrayLike,
+    threshold: float,
+    rng: np.random.Generator,
+    min_share: float = 0.05,
+    normals: ArrayLike | None = None,
+    normal_weight: float = 0.02,
+) -> tuple[FloatArray, float, NDArray[np.bool_]] | None:
+    """Dominant plane ``(normal, offset, inlier mask)`` of a cloud, or ``None`` if it holds less
+    than ``min_share`` of the points. With ``normals``, a point counts only if its normal agrees
+    with the plane's (see :class:`lrms.ransac.PlaneModel`)."""
+    pts = np.asarray(points, dtype=np.float64)
+    data = pts if normals is None else np.hstack([pts, np.asarray(normals, dtype=np.float64)])
+
+    class _Plane(PlaneModel):
+        pass
+
+    _Plane.normal_weight = normal_weight if normals is not None else 0.0
+    try:
+        model, mask = ransac(data, _Plane, 3, threshold, max_trials=1500, min_trials=400, rng=rng, score_size=5000)
+    except FitError:
+        return None
+    if np.count_nonzero(mask) < min_share * pts.shape[0]:
+        return None
+    return model.normal, model.offset, mask
+
+
+def dominant_planes(
+    points: ArrayLike, options: DetectOptions | None = None, rng: np.random.Generator | None = None
+) -> tuple[IntArray, list[tuple[FloatArray, float]]]:
+    """Set aside the large planes of a cloud (walls, floor, ceiling, table tops) before the cylinder
+    RANSAC; returns the indices of the points off them and the planes ``(normal, offset)``.
+
+    Works on a random sample of at most ``options.wall_sample`` points (the RANSAC draws from a few
+    thousand anyway): normals by PCA of ``normal_k`` neighbours, then up to ``max_planes`` plane
+    RANSACs, each on the points left by the previous ones, a point counting for a plane when it
+    lies within ``threshold`` of it and its normal is within about 30 deg of the plane's. A plane
+    is taken only if it holds at least ``wall_min_share`` of the sample and its points span at
+    least ``wall_min_extent`` in both directions of the plane (2nd-98th percentiles); the first
+    plane that fails ends the search. This protects the part: a cylinder of D >= 0.1 m is not a
+    plane at the scanner's noise, and its points whose normals agree with one plane form a strip
+    ``D sin(30 deg)`` wide at most, far narrower than ``wall_min_extent``. A point of the whole
+    cloud is set aside when it lies within ``threshold`` of a taken plane and its nearest sampled
+    point was taken by a plane.
+    """
+    opt = options if options is not None else DetectOptions()
+    g = rng if rng is not None else np.random.default_rng(0)
+    pts = np.asarray(points, dtype=np.float64)
+    n = pts.shape[0]
+    if opt.max_planes <= 0 or n < 3 * max(opt.min_inliers, 10):
+        return np.arange(n), []
+    idx = np.sort(g.choice(n, size=opt.wall_sample, replace=False)) if n > opt.wall_sample else np.arange(n)
+    data = np.hstack([pts[idx], estimate_normals(pts[idx], opt.normal_k)])
+
+    class _Plane(PlaneModel):
+        normal_weight = opt.threshold / float(np.deg2rad(30.0))
+
+    left = np.ones(idx.size, dtype=bool)
+    planes: list[tuple[FloatArray, float]] = []
+    for _ in range(opt.max_planes):
+        rows = np.flatnonzero(left)
+        if rows.size < 3 * opt.min_inliers:
+            break
+        try:
+            model, mask = ransac(
+                data[rows], _Plane, 3, opt.threshold, max_trials=500, min_trials=100, rng=g, score_size=5000
+            )
+        except FitError:
+            break
+        if np.count_nonzero(mask) < opt.wall_min_share * idx.size:
+            break
+        on = pts[idx[rows[mask]]]
+        e1, e2 = perpendicular_frame(model.normal)
+        span = np.ptp(np.percentile(on @ np.stack([e1, e2], axis=1), [2.0, 98.0], axis=0), axis=0)
+        if float(np.min(span)) < opt.wall_min_extent:
+            break
+        planes.append((np.asarray(model.normal, dtype=np.float64), float(model.offset)))
+        left[rows[mask]] = False
+    if not planes:
+        return np.arange(n), []
+    near = np.zeros(n, dtype=bool)
+    for normal, offset in planes:
+        near |= np.abs(pts @ normal - offset) < opt.threshold
+    _, nn = cKDTree(pts[idx]).query(pts, k=1)
+    off = ~near | left[np.asarray(nn, dtype=np.intp)]
+    return np.flatnonzero(off), planes
+
+
+def detect_cylinder(
+    points: ArrayLike,
+    options: DetectOptions | None = None,
+    rng: np.random.Generator | None = None,
+    candidates: ArrayLike | None = None,
+) -> tuple[Cylinder, tuple[FloatArray, float] | None]:
+    """Rough cylinder (RANSAC, 2 points + normals) and the table plane if one was found.
+
+    ``candidates``: indices of the points the RANSAC draws from (e.g. those off the background
+    planes, :func:`dominant_planes`); the table plane is searched among all points."""
+    opt = options if options is not None else DetectOptions()
+    g = rng if rng is not None else np.random.default_rng(0)
+    pts = np.asarray(points, dtype=np.float64)
+    n = pts.shape[0]
+    if n < opt.min_inliers:
+        raise FitError(f"too few points to detect a cylinder: {n} (need {opt.min_inliers})")
+    pool = pts if candidates is None else pts[np.asarray(candidates)]
+    if pool.shape[0] < opt.min_inliers:
+        raise FitError(f"too few points off the background planes to detect a cylinder: {pool.shape[0]}")
+    m = pool.shape[0]
+    sub = pool[g.choice(m, size=opt.sample_size, replace=False)] if m > opt.sample_size else pool
+    normals = estimate_normals(sub, opt.normal_k)
+    data = np.hstack([sub, normals])
+
+    # a footprint widens the apparent part by up to a spot radius on each side (``opt.spot``)
+    spot_r = 0.5 * (opt.spot[0] + opt.spot[1] * float(np.max(np.linalg.norm(sub, axis=1))))
+
+    class _Model(CylinderModel):
+        normal_weight = opt.normal_weight
+        radius_range = (opt.radius_range[0], opt.radius_range[1] + spot_r)
+
+    min_inl = max(opt.min_inliers // 2, int(0.02 * data.shape[0]), 6)
+    model, _ = ransac(
+        data,
+        _Model,
+        2,
+        opt.threshold,
+        max_trials=opt.max_trials,
+        min_trials=opt.min_trials,
+        min_inliers=min_inl,
+        refine=False,
+        rng=g,
+    )
+    assert model.cylinder is not None
+    return model.cylinder, support_plane(pts, model.cylinder, opt)
+
+
+def support_plane(pts: FloatArray, cyl: Cylinder, opt: DetectOptions) -> tuple[FloatArray, float] | None:
+    """The plane the part stands on: perpendicular to the axis (within 10 deg), the most
+    populated such slab among the points off the cylinder, refined by total least squares.
+
+    (A free plane RANSAC is unreliable here: at the rig's grazing view of a table the points
+    come in sparse scan lines, so their neighbourhood normals are ill-defined, and the front of
+    the part is as flat as the table within the range noise.)
+    """
+    dist = np.abs(cyl.surface_distance(pts))
+    off = pts[dist > opt.threshold]
+    if off.shape[0] < max(opt.min_inliers, opt.plane_min_share * pts.shape[0]):
+        return None
+    s = off @ cyl.direction
+    width = opt.plane_threshold
+    edges = np.arange(s.min(), s.max() + 2 * width, width)
+    if edges.size < 2:
+        return None
+    counts, edges = np.histogram(s, bins=edges)
+    # the part stands on the plane: a slab through the middle of the points on the candidate is
+    # not its support (a dense band of the part's own points, left off a wrong candidate, can
+    # outnumber the table), so only slabs beyond the 5th / 95th percentile of the candidate's
+    # points along the axis, less two slab widths, are eligible
+    s_on = pts[dist <= opt.threshold] @ cyl.direction
+    if s_on.size >= opt.min_inliers:
+        lo, hi = np.percentile(s_on, [5.0, 95.0])
+        mid = 0.5 * (edges[:-1] + edges[1:])
+        counts = np.where((mid <= lo + 2 * width) | (mid >= hi - 2 * width), counts, 0)
+    pair = counts[:-1] + counts[1:] if counts.size > 1 else counts
+    if not np.any(pair > 0):
+        return None
+    i = int(np.argmax(pair))
+    centre = edges[i + 1] if counts.size > 1 else 0.5 * (edges[0] + edges[1])
+    near = off[np.abs(s - centre) < width]
+    if near.shape[0] < max(opt.min_inliers, opt.plane_min_share * pts.shape[0]):
+        return None
+    model = PlaneModel()
+    for _ in range(2):
+        if not model.estimate(near):
+            return None
+        near = off[model.residuals(off) < width]
+        if near.shape[0] < 3:
+            return None
+    if abs(float(model.normal @ cyl.direction)) < np.cos(np.deg2rad(10.0)):
+        return None
+    return model.normal, model.offset
+
+
+def table_height(
+    pts: FloatArray, fit: CylinderFit, plane: tuple[FloatArray, float], opt: DetectOptions
+) -> tuple[FloatArray, float, FloatArray] | None:
+    """The table under the fitted part as a plane perpendicular to the fitted axis.
+
+    Returns ``(up, height, origin)``: the axis direction pointing from the table to the part and
+    the table's height along it, measured from ``origin`` (the fitted axis point), or ``None``
+    when the support plane is not under the part or too few table points lie near the part. The
+    height is the mode (2 mm bins, then the mean within 3 mm) of the axial coordinates of the
+    points off the part within 0.3 m of its surface and 50 mm of the support plane: the part
+    stands on the table, so the table's normal is the axis, and the few points near the part
+    fix its height better than the plane fitted to the whole grazing table (tilted by 1-4 deg
+    in some sweeps).
+    """
+    cyl = fit.cylinder
+    pn, po = plane
+    up = cyl.direction
+    denom = float(pn @ up)
+    if abs(denom) < 0.9:
+        return None
+    s = (pts - cyl.point) @ up
+    s0 = (po - float(pn @ cyl.point)) / denom
+    if s0 > float(np.median(s[fit.inliers])):
+        up, s, s0 = -up, -s, -s0
+    dist = cyl.axis_distance(pts)
+    near = (dist > cyl.radius + opt.threshold) & (dist < cyl.radius + 0.3) & (np.abs(s - s0) < 0.05)
+    if np.count_nonzero(near) < opt.min_inliers:
+        return None
+    counts, edges = np.histogram(s[near], bins=np.arange(s0 - 0.05, s0 + 0.0501, 0.002))
+    mode = 0.5 * (edges[int(np.argmax(counts))] + edges[int(np.argmax(counts)) + 1])
+    for _ in range(2):
+        sel = near & (np.abs(s - mode) < 0.003)
+        if np.count_nonzero(sel) < opt.min_inliers:
+            return None
+        mode = float(np.median(s[sel]))
+    return np.asarray(up, dtype=np.float64), float(np.mean(s[sel])), cyl.point
+
+
+#: Bin width (m) along the axis of the inlier density that locates the part's top.
+TOP_BIN = 0.02
+
+
+def _top_height(h_cand: FloatArray, h_inl: FloatArray) -> float:
+    """Height of the part's top end above the table, from the predicted hit heights of its
+    beams: the upper edge (plus one bin) of the last :data:`TOP_BIN` bin holding at least a fifth
+    of the median count of the fit's inliers per bin. Above it the candidates are beams that
+    pass over the part and meet the model's infinite extension: clutter, never the part. A part
+    whose top is not in view keeps its dense bins to the end, and nothing is cut."""
+    top = float(np.max(h_cand))
+    edges = np.arange(0.0, top + TOP_BIN, TOP_BIN)
+    if edges.size < 4:
+        return top
+    counts, _ = np.histogram(h_inl, bins=edges)
+    filled = counts[counts > 0]
+    if filled.size == 0:
+        return top
+    dense = np.flatnonzero(counts >= 0.2 * float(np.median(filled)))
+    return min(top, float(edges[dense[-1] + 1]) + TOP_BIN)

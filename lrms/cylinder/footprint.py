@@ -1,0 +1,332 @@
+"""The line-of-sight fit under a finite beam footprint: the expected echo of a beam whose light
+spot meets the model cylinder in whole or in part, with the receiver's edge behaviour estimated.
+
+A real LMS1xx's spot is ``exit_diameter + divergence x range`` wide (8 mm + 15 mrad x r: 45 mm at
+2.5 m), a Gaussian-like profile. A beam whose spot straddles the part's silhouette still returns
+an echo of the covered part, and on a curved or inclined surface the range the receiver reports
+is formed over the spot. The thin-beam fit reads those echoes as points on the beam's axis and
+finds the part tens of millimetres too large (docs/sensor-model.md). Here the measured range of
+beam i is modelled as the echo the model cylinder would return:
+
+* the spot is a Gaussian of standard deviation ``sigma(t) = profile_sigma (exit + divergence t)``
+  across the beam. Only the lateral coordinate ``xi`` across the cylinder's axis decides whether
+  a sub-ray meets the part (``|x0 + xi sigma| < r``, ``x0`` the beam's signed closest approach to
+  the axis); the covered share of the spot is ``c = Phi(xi_hi) - Phi(xi_lo)`` in closed form;
+* the covered part of the profile is integrated by Gauss-Legendre nodes placed in probability
+  (``xi_k = Phi^-1(Phi(xi_lo) + c u_k)``, weights ``c g_k``): each node a sub-ray cast exactly
+  against the model (``_ray_cylinder``), so the integral follows the cylinder's true range
+  profile and moves smoothly with the parameters (no sub-ray popping in or out);
+* the range along the other direction across the beam varies linearly (slope from two more
+  casts): it averages out of an energy-weighted range and widens the range distribution of a
+  first-hit one;
+* edge behaviour, two families (what SICK publishes fixes neither): **energy-weighted** (the
+  range is the energy-weighted mean over the covered spot, energy ~ cos(incidence) / t^2; it does
+  not depend on the detection threshold, so the fit conditions on a beam being detected and
+  needs no threshold) and **first hit** (the range at which the covered share of the spot, taken
+  in range order, reaches the threshold ``tau``; ``tau`` is a fitted parameter, and a beam the
+  model covers by less than ``tau`` adds the residual ``(tau - c) / 0.05``).
+
+:func:`footprint_fit` fits both families from the thin-beam fit's solution and keeps the one of
+lower Akaike criterion; the thin-beam model itself competes too (clouds without a footprint). What
+is not estimated is carried as a budget row, ``fit.extra["edge_model_u_m"]`` (standard
+uncertainty of the diameter): the effective spot size (SICK's figures read as the 1/e^2 diameter
+of a Gaussian: our reading, with a relative standard uncertainty ``spot_scale_u``, propagated by
+the fit's sensitivity to it) and, when the data do not decide between the two families (AIC
+difference below :data:`MODE_DECISIVE`), half the difference of their diameters.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+from scipy.special import expit, logit, ndtr, ndtri
+
+from lrms.cylinder.model import Cylinder, Rays, _dot, _ray_cylinder
+from lrms.cylinder.refine import CylinderFit, _Frame, los_residuals
+from lrms.errors import FitError
+
+FloatArray = NDArray[np.float64]
+EdgeMode = Literal["weighted", "first"]
+
+#: LMS1xx light spot at the front screen (m) and divergence (full angle, rad): SICK 8012471, 3.6.2.
+LMS1XX_EXIT_DIAMETER = 0.008
+LMS1XX_DIVERGENCE = 0.015
+#: AIC difference above which one edge family is taken as decided by the data.
+MODE_DECISIVE = 10.0
+#: Scale (share of the spot) of the penalty on a first-hit beam the model covers by less than tau.
+COVERAGE_SCALE = 0.05
+#: Gauss-Legendre nodes and weights on (0, 1).
+_GL_X, _GL_W = np.polynomial.legendre.leggauss(16)
+_GL_U = 0.5 * (_GL_X + 1.0)
+_GL_G = 0.5 * _GL_W
+
+
+@dataclass(frozen=True)
+class BeamOptics:
+    """The scanner's light spot, as the fit models it.
+
+    ``exit_diameter_m`` + ``divergence_rad`` x range: the nominal spot diameter (LMS1xx: 8 mm,
+    15 mrad, SICK 8012471 section 3.6.2). ``profile_sigma``: the Gaussian's sigma over that
+    diameter (0.25: the diameter read as the 1/e^2 intensity diameter; SICK does not define the
+    spot's edge, so this is our reading). ``spot_scale_u``: relative standard uncertainty of the
+    effective spot size carried into ``edge_model_u_m`` (0.15, ours). Bad values: :class:`FitError`.
+    """
+
+    exit_diameter_m: float = LMS1XX_EXIT_DIAMETER
+    divergence_rad: float = LMS1XX_DIVERGENCE
+    profile_sigma: float = 0.25
+    spot_scale_u: float = 0.15
+
+    def __post_init__(self) -> None:
+        for name, lo, hi in (
+            ("exit_diameter_m", 0.0, 0.5),
+            ("divergence_rad", 0.0, 0.5),
+            ("profile_sigma", 1e-3, 10.0),
+            ("spot_scale_u", 0.0, 1.0),
+        ):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and np.isfinite(v) and lo <= v <= hi):
+                raise FitError(f"beam optics: {name} must be within [{lo}, {hi}], got {v!r}")
+        if self.exit_diameter_m == 0.0 and self.divergence_rad == 0.0:
+            raise FitError("beam optics: a spot of zero size is the thin beam (use no optics)")
+
+    def sigma(self, range_m: FloatArray | float) -> FloatArray:
+        """The spot profile's standard deviation (m) at ``range_m``."""
+        return np.asarray(
+            self.profile_sigma * (self.exit_diameter_m + self.divergence_rad * np.asarray(range_m)), dtype=np.float64
+        )
+
+
+def expected_echo(
+    cyl_a: FloatArray,
+    cyl_w: FloatArray,
+    radius: float,
+    rays: Rays,
+    optics: BeamOptics,
+    mode: EdgeMode,
+    tau: float = 0.3,
+    scale: float = 1.0,
+) -> tuple[FloatArray, FloatArray]:
+    """Expected range of each beam's echo from the cylinder ``(cyl_a, cyl_w, radius)`` and the
+    covered share ``c`` of its spot (see the module notes). ``scale`` multiplies the spot size."""
+    o, u = rays.origins, rays.dirs
+    w = np.asarray(cyl_w, dtype=np.float64)
+    a = np.asarray(cyl_a, dtype=np.float64)
+    nvec = np.cross(u, w)
+    nn = np.maximum(np.linalg.norm(nvec, axis=1, keepdims=True), 1e-12)
+    nvec = nvec / nn
+    mvec = np.cross(u, nvec)
+    x0 = _dot(o - a, nvec)
+    t_ca, _ = _ray_cylinder(o, u, a, w, np.asarray(1e-9))  # closest approach to the axis
+    s0 = scale * optics.profile_sigma * optics.exit_diameter_m
+    sd = scale * optics.profile_sigma * optics.divergence_rad
+    sig = s0 + sd * np.maximum(t_ca, 0.0)
+    xi_lo = (-radius - x0) / sig
+    xi_hi = (radius - x0) / sig
+    p_lo, p_hi = ndtr(xi_lo), ndtr(xi_hi)
+    c = np.maximum(p_hi - p_lo, 0.0)
+    # nodes in probability over the covered part; a spot that meets nothing keeps nodes at the edge
+    width = np.maximum(c, 1e-9)
+    base = np.where(x0 > 0, np.minimum(p_lo, 1.0 - width), p_lo)
+    p = np.clip(base[:, None] + width[:, None] * _GL_U[None, :], 1e-15, 1.0 - 1e-15)
+    xi = ndtri(p)  # (N, K)
+    wts = c[:, None] * _GL_G[None, :]
+    k = xi.shape[1]
+
+    def cast(lateral: FloatArray, along: float) -> tuple[FloatArray, FloatArray]:
+        off = lateral[..., None] * nvec[:, None, :] + along * mvec[:, None, :]
+        so = o[:, None, :] + s0 * off
+        su = u[:, None, :] + np.tan(sd) * off
+        su = su / np.linalg.norm(su, axis=2, keepdims=True)
+        t, _ = _ray_cylinder(so.reshape(-1, 3), su.reshape(-1, 3), a, w, np.asarray(radius))
+        return t.reshape(-1, k), su
+
+    t, su = cast(xi, 0.0)
+    if mode == "weighted":
+        hit = o[:, None, :] + t[..., None] * su
+        q = hit - a
+        q = q - _dot(q, w)[..., None] * w
+        cos = np.abs(_dot(q, su)) / np.maximum(np.linalg.norm(q, axis=2), 1e-300)
+        e = wts * np.maximum(cos, 1e-3) / np.square(np.maximum(t, 1e-3))
+        rng_ = np.sum(e * t, axis=1) / np.maximum(np.sum(e, axis=1), 1e-300)
+        return np.asarray(rng_, dtype=np.float64), c
+    t_up, _ = cast(xi, 1.0)
+    t_dn, _ = cast(xi, -1.0)
+    ys = 0.5 * np.abs(t_up - t_dn)  # range change over one sigma along the axis' direction
+    gap = np.abs(np.diff(t, axis=1))
+    spacing = np.concatenate([gap[:, :1], 0.5 * (gap[:, 1:] + gap[:, :-1]), gap[:, -1:]], axis=1)
+    s = np.sqrt(ys * ys + np.square(0.5 * spacing) + 1e-10)
+    target = np.minimum(tau, 0.999 * c)[:, None]
+    lo = np.min(t - 6 * s, axis=1)
+    hi = np.max(t + 6 * s, axis=1)
+    big_t = np.sum(wts * t, axis=1) / np.maximum(c, 1e-300)
+    for _ in range(40):  # safeguarded Newton on F(T) = target
+        z = (big_t[:, None] - t) / s
+        f = np.sum(wts * ndtr(z), axis=1, keepdims=True) - target
+        fp = np.sum(wts * np.exp(-0.5 * z * z) / (np.sqrt(2 * np.pi) * s), axis=1, keepdims=True)
+        lo = np.where(f[:, 0] < 0, big_t, lo)
+        hi = np.where(f[:, 0] >= 0, big_t, hi)
+        step = big_t - f[:, 0] / np.maximum(fp[:, 0], 1e-300)
+        inside = (step > lo) & (step < hi)
+        new = np.where(inside, step, 0.5 * (lo + hi))
+        if np.max(np.abs(new - big_t)) < 1e-11:
+            big_t = new
+            break
+        big_t = new
+    return np.asarray(big_t, dtype=np.float64), c
+
+
+@dataclass
+class _Solved:
+    mode: EdgeMode
+    theta: FloatArray
+    tau: float
+    cost: float
+    jac: FloatArray
+    n_par: int
+    rays: Rays
+
+
+def _residuals(
+    theta: FloatArray, frame: _Frame, rays: Rays, optics: BeamOptics, mode: EdgeMode, scale: float = 1.0
+) -> FloatArray:
+    a, w, r = frame.unpack(theta[:5])
+    tau = float(expit(theta[5])) if mode == "first" else 0.0
+    pred, c = expected_echo(a, w, float(r), rays, optics, mode, tau, scale)
+    res = (rays.ranges - pred) / rays.sigma_l
+    if mode == "first":
+        res = np.concatenate([res, np.maximum(tau - c, 0.0) / COVERAGE_SCALE])
+    return np.asarray(res, dtype=np.float64)
+
+
+def _solve(frame: _Frame, rays: Rays, optics: BeamOptics, mode: EdgeMode, start: FloatArray) -> _Solved:
+    # the footprint makes the thin-beam fit too large by up to a spot diameter, never smaller by
+    # more than a fraction of one: bounds keep a flat likelihood from wandering off
+    spot = float(2.0 / optics.profile_sigma * optics.sigma(float(np.linalg.norm(frame.a))))
+    lo = np.array([-0.05, -0.05, -spot, -spot, -spot, -8.0][: start.size])
+    hi = np.array([0.05, 0.05, spot, spot, 0.25 * spot, 8.0][: start.size])
+    out = least_squares(
+        lambda th: _residuals(th, frame, rays, optics, mode),
+        np.clip(start, lo + 1e-12, hi - 1e-12),
+        bounds=(lo, hi),
+        method="trf",
+        x_scale=np.array([1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 0.3][: start.size]),
+        diff_step=np.full(start.size, 1e-5),
+        max_nfev=60 * start.size,
+    )
+    if not np.all(np.isfinite(out.x)):
+        raise FitError("footprint fit diverged")
+    tau = float(expit(out.x[5])) if mode == "first" else float("nan")
+    return _Solved(mode, np.asarray(out.x), tau, float(2.0 * out.cost), np.asarray(out.jac), start.size, rays)
+
+
+def _end_trim(cyl: Cylinder, rays: Rays, optics: BeamOptics) -> NDArray[np.bool_]:
+    """Beams whose spot stays clear of the ends of the visible part (table, top): the model is an
+    infinite cylinder, so a spot that straddles an end is not in it. The ends are the extreme hit
+    heights of the inliers; the margin is 3 spot sigmas."""
+    t, _ = cyl.ray_range(rays.origins, rays.dirs)
+    h = (rays.origins + t[:, None] * rays.dirs - cyl.point) @ cyl.direction
+    margin = 3.0 * optics.sigma(t)
+    return np.asarray((h - margin >= np.min(h)) & (h + margin <= np.max(h)), dtype=np.bool_)
+
+
+def footprint_fit(
+    pts: FloatArray,
+    rays: Rays,
+    fit: CylinderFit,
+    optics: BeamOptics,
+    modes: tuple[EdgeMode, ...] = ("weighted", "first"),
+    work_size: int = 4000,
+    gate: float = 4.0,
+) -> CylinderFit:
+    """Refit a thin-beam line-of-sight ``fit`` (its inliers; ``rays`` one per point of ``pts``)
+    with the expected echo of each beam's footprint, the edge family chosen by the data.
+
+    Returns a :class:`CylinderFit` whose covariance is that of the chosen family's fit (with the
+    threshold's uncertainty for a first-hit fit), scaled by ``max(1, chi2/dof)`` (the range noise of
+    a real receiver exceeds the noise model at weak and inclined echoes), and whose ``extra`` holds
+    ``edge_model_u_m`` (the budget row of what is not estimated: spot size, undecided family),
+    ``edge_mode_first`` (1 first hit, 0 energy-weighted, -1 the thin beam won), ``edge_threshold``
+    (the fitted tau, first hit only), ``edge_spot_sensitivity_m`` (d diameter / d relative spot
+    size), ``thin_beam_diameter_m``, ``aic_weighted`` / ``aic_first`` / ``aic_thin``.
+    """
+    if not fit.line_of_sight:
+        raise FitError("the footprint fit needs a line-of-sight fit")
+    idx = fit.inliers
+    sub = rays.subset(idx)
+    keep = _end_trim(fit.cylinder, sub, optics)
+    use = idx[keep]
+    if use.size < 30:
+        raise FitError(f"too few beams clear of the part's ends for the footprint fit ({use.size})")
+    if use.size > work_size:
+        use = np.sort(np.random.default_rng(4).choice(use, work_size, replace=False))
+    work = rays.subset(use)
+    frame = _Frame.at(fit.cylinder.with_point_near(pts[use].mean(axis=0)))
+    thin_res = los_residuals(np.zeros(5), frame, work.origins, work.dirs, work.ranges, work.sigma_l, work.sigma_perp)
+    aic_thin = float(np.sum(thin_res * thin_res)) + 2 * 5
+    solved: list[_Solved] = []
+    for mode in modes:
+        start = np.zeros(5) if mode == "weighted" else np.array([0, 0, 0, 0, 0, float(logit(0.3))])
+        try:
+            first = _solve(frame, work, optics, mode, start)
+            # drop gross outliers under the footprint model, refit once
+            res = _residuals(first.theta, frame, work, optics, mode)[: work.ranges.size]
+            ok = np.abs(res) < gate
+            if np.count_nonzero(ok) < 30:
+                continue
+            solved.append(
+                _solve(frame, work.subset(np.flatnonzero(ok)), optics, mode, first.theta) if not np.all(ok) else first
+            )
+        except FitError:
+            continue
+    if not solved:
+        raise FitError("the footprint fit failed in every edge family")
+    aic = {s.mode: s.cost + 2 * s.n_par for s in solved}
+    best = min(solved, key=lambda s: aic[s.mode])
+    extra = {
+        **fit.extra,
+        "thin_beam_diameter_m": float(fit.diameter),
+        "aic_thin": aic_thin,
+        **{f"aic_{m}": float(v) for m, v in aic.items()},
+    }
+    if aic_thin < aic[best.mode]:
+        return replace(fit, extra={**extra, "edge_mode_first": -1.0, "edge_model_u_m": 0.0})
+    jac = best.jac
+    n_res = best.rays.ranges.size  # range rows (a first-hit fit adds coverage rows)
+    jtj_inv = np.linalg.pinv(jac.T @ jac)
+    dof = max(n_res - best.n_par, 1)
+    chi2_dof = best.cost / dof
+    cov_full = jtj_inv * max(1.0, chi2_dof)
+    # sensitivity of the solution to the spot size: d theta / d scale = -(J^T J)^-1 J^T d res / d scale
+    res_lo = _residuals(best.theta, frame, best.rays, optics, best.mode, scale=0.99)
+    res_hi = _residuals(best.theta, frame, best.rays, optics, best.mode, scale=1.01)
+    dtheta = -jtj_inv @ (jac.T @ ((res_hi - res_lo) / 0.02))
+    spot_sens = float(2.0 * dtheta[4])
+    u_spot = abs(spot_sens) * optics.spot_scale_u
+    u_mode = 0.0
+    if len(solved) == 2 and abs(aic[solved[0].mode] - aic[solved[1].mode]) < MODE_DECISIVE:
+        radii = [frame.unpack(s.theta[:5])[2] for s in solved]
+        u_mode = float(abs(radii[0] - radii[1]))  # half the diameter difference
+    cyl = frame.cylinder(best.theta[:5]).with_point_near(pts[idx].mean(axis=0))
+    return replace(
+        fit,
+        cylinder=cyl,
+        inliers=idx,
+        rmse=float(np.sqrt(best.cost / n_res)) * float(np.median(best.rays.sigma_l)),
+        covariance=np.asarray(cov_full[:5, :5], dtype=np.float64),
+        frame=(frame.e1, frame.e2),
+        chi2_dof=float(chi2_dof),
+        sigma_scale=float(np.sqrt(max(1.0, chi2_dof))),
+        extra={
+            **extra,
+            "edge_mode_first": 1.0 if best.mode == "first" else 0.0,
+            "edge_threshold": best.tau if best.mode == "first" else float("nan"),
+            "edge_spot_sensitivity_m": spot_sens,
+            "edge_model_u_m": float(np.hypot(u_spot, u_mode)),
+            "footprint_beams": float(n_res),
+        },
+    )

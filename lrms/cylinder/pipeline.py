@@ -1,0 +1,331 @@
+"""The top-level pipeline :func:`fit_cylinder`: detection attempts, the line-of-sight fit with
+multi-start, selection by the scene model (beams above the table), grazing weights, bias correction."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from lrms import kinematics
+from lrms.covariance import NoiseModel
+from lrms.cylinder.bias import GRAZING_SIGMA, bias_corrected, grazing_weighted_fit
+from lrms.cylinder.detect import _top_height, detect_cylinder, dominant_planes, table_height
+from lrms.cylinder.footprint import BeamOptics, footprint_fit
+from lrms.cylinder.model import Cylinder, Rays, rays_from_points
+from lrms.cylinder.options import DetectOptions
+from lrms.cylinder.refine import CylinderFit, refine_cylinder
+from lrms.errors import FitError
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+#: Clearance (m) above the table, along the axis, of a beam's predicted first hit on the fitted
+#: part for the beam to count as a part echo (:func:`_select_above_table`). The selection is by
+#: the model, not by the measured range, so it does not bias the fit; the clearance covers the
+#: beam's pointing noise (``l sigma_alpha`` = 0.08 mm at 2.5 m) and the error of the table height
+#: and axis (< 0.1 mm) many times over. (0.5 mm let table echoes in front of the base in, +0.04 mm
+#: mean diameter error on 100 sweeps; 1 and 3 mm did not, docs/cylinder.md section 4.)
+BASE_CLEARANCE = 2e-3
+
+
+#: Default tolerance of a nominal diameter, as a share of it.
+NOMINAL_TOLERANCE = 0.1
+
+
+def nominal_diameter_range(nominal: float, tolerance: float | None = None) -> tuple[float, float]:
+    """The diameter range ``nominal +- tolerance`` (m) of the candidates a fit may accept.
+
+    ``tolerance`` defaults to :data:`NOMINAL_TOLERANCE` of the nominal diameter. Bad input (a
+    nominal diameter <= 0 or not finite, a negative tolerance, or one that leaves no positive
+    diameter) raises :class:`FitError`."""
+    if not (isinstance(nominal, int | float) and np.isfinite(nominal) and nominal > 0):
+        raise FitError(f"nominal diameter must be > 0 m, got {nominal!r}")
+    tol = NOMINAL_TOLERANCE * nominal if tolerance is None else tolerance
+    if not (isinstance(tol, int | float) and np.isfinite(tol) and tol > 0):
+        raise FitError(f"diameter tolerance must be > 0 m, got {tolerance!r}")
+    if tol >= nominal:
+        raise FitError(f"diameter tolerance {tol} m leaves no positive diameter below the nominal {nominal} m")
+    return float(nominal - tol), float(nominal + tol)
+
+
+def _radius_ok(cyl: Cylinder, opt: DetectOptions) -> bool:
+    """Is the radius in ``opt.radius_range``, the upper bound raised by the spot radius at the
+    axis' range from the rig (``opt.spot``: the thin-beam fit reads a footprint's edge echoes as
+    the part's surface, up to about a spot radius wider on each side)?"""
+    lo, hi = opt.radius_range
+    exit_d, div = opt.spot
+    allowance = 0.5 * (exit_d + div * float(np.linalg.norm(cyl.point)))
+    return lo <= cyl.radius <= hi + allowance
+
+
+#: Radius offsets (in units of sigma_l) of the extra starts of the line-of-sight fit.
+MULTISTART = (-0.2, -0.1, 0.1, 0.2)
+
+
+def _multistart(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: DetectOptions) -> CylinderFit:
+    """Restart the line-of-sight fit from radii around the solution and keep the lowest cost.
+
+    The range residual of a beam near the silhouette has a kink where the beam becomes tangent
+    (the hit range varies like a square root of the radius there), so the likelihood has
+    several local minima a few tenths of sigma_l apart; one LM run from the orthogonal fit's
+    (biased) start does not always reach the best. The starts are compared on the same inliers
+    (a random subset of at most 5000 of them for large clouds), the winner is refined on all.
+    """
+    idx = fit.inliers
+    work = 5_000
+    sel = idx if idx.size <= work else np.sort(np.random.default_rng(2).choice(idx, work, replace=False))
+    sub_pts, sub_rays = pts[sel], rays.subset(sel)
+    sig = float(np.median(rays.sigma_l))
+    best_cyl, best_cost = fit.cylinder, np.inf
+    for dr in (0.0, *MULTISTART):
+        start = Cylinder(fit.cylinder.point, fit.cylinder.direction, fit.cylinder.radius + dr * sig)
+        try:
+            trial = refine_cylinder(sub_pts, start, rays=sub_rays, gate=np.inf, max_rounds=1)
+        except FitError:
+            continue
+        if trial.chi2_dof < best_cost:
+            best_cyl, best_cost = trial.cylinder, trial.chi2_dof
+    return refine_cylinder(pts, best_cyl, rays=rays, max_rounds=1)
+
+
+def _los_fit(pts: FloatArray, rays: Rays, start: Cylinder, opt: DetectOptions) -> CylinderFit:
+    """The line-of-sight fit from ``start`` on candidate points (their beams ``rays``): inlier
+    selection from ``start``, then :func:`_multistart` around its solution."""
+    fit = refine_cylinder(pts, start, rays=rays, max_rounds=4, final_full=False, work_size=5000)
+    return _multistart(pts, rays, fit, opt)
+
+
+def _refine_from(
+    pts: FloatArray,
+    initial: Cylinder,
+    line_of_sight: bool,
+    rays: Rays | None,
+    opt: DetectOptions,
+) -> CylinderFit:
+    """Orthogonal polish near ``initial``, then the final fit on the whole cloud's candidates."""
+    band = np.flatnonzero(np.abs(initial.surface_distance(pts)) < 1.5 * opt.threshold)
+    if band.size < opt.min_inliers:
+        raise FitError(f"no cylinder found: only {band.size} points near the best candidate")
+    if band.size > 5000:  # a rough start needs no more
+        band = np.sort(np.random.default_rng(1).choice(band, 5000, replace=False))
+    rough = refine_cylinder(pts[band], initial, sigma=None, max_rounds=2, gate=3.0)
+    lo, hi = opt.radius_range
+    if not _radius_ok(rough.cylinder, opt):
+        raise FitError(f"no cylinder found: radius {rough.cylinder.radius:.4g} m outside [{lo}, {hi}] m")
+    if line_of_sight:
+        assert rays is not None
+        t, gap = rough.cylinder.ray_range(rays.origins, rays.dirs)
+        cand = np.flatnonzero((np.abs(rays.ranges - t) < 2.0 * opt.threshold) & (gap < 2.0 * opt.threshold))
+        if cand.size < opt.min_inliers:
+            raise FitError(f"no cylinder found: only {cand.size} points on the candidate's lines of sight")
+        fit = _los_fit(pts[cand], rays.subset(cand), rough.cylinder, opt)
+    else:
+        cand = np.flatnonzero(np.abs(rough.cylinder.surface_distance(pts)) < 2.0 * opt.threshold)
+        if cand.size < opt.min_inliers:
+            raise FitError(f"no cylinder found: only {cand.size} points near the candidate")
+        fit = refine_cylinder(pts[cand], rough.cylinder, sigma=None, max_rounds=4, gate=3.0)
+    if not _radius_ok(fit.cylinder, opt):
+        raise FitError(f"no cylinder found: radius {fit.cylinder.radius:.4g} m outside [{lo}, {hi}] m")
+    inl = cand[fit.inliers]
+    if inl.size < opt.min_inliers:
+        raise FitError(f"no cylinder found: only {inl.size} inliers after refinement")
+    return CylinderFit(
+        cylinder=fit.cylinder,
+        inliers=inl,
+        rmse=fit.rmse,
+        covariance=fit.covariance,
+        frame=fit.frame,
+        line_of_sight=fit.line_of_sight,
+        chi2_dof=fit.chi2_dof,
+        sigma_scale=fit.sigma_scale,
+        n_points=int(pts.shape[0]),
+    )
+
+
+def _off_support(
+    pts: FloatArray, cyl: Cylinder, plane: tuple[FloatArray, float] | None, opt: DetectOptions
+) -> IntArray:
+    """Indices of the points not on the support plane (a plane nearly perpendicular to the axis:
+    the table the part stands on, whose points in front of the base would pass for the part)."""
+    if plane is None or abs(float(plane[0] @ cyl.direction)) < 0.9:
+        return np.arange(pts.shape[0])
+    return np.flatnonzero(np.abs(pts @ plane[0] - plane[1]) > opt.plane_threshold)
+
+
+def _reindex(fit: CylinderFit, use: IntArray, n_points: int) -> CylinderFit:
+    return CylinderFit(
+        cylinder=fit.cylinder,
+        inliers=use[fit.inliers],
+        rmse=fit.rmse,
+        covariance=fit.covariance,
+        frame=fit.frame,
+        line_of_sight=fit.line_of_sight,
+        chi2_dof=fit.chi2_dof,
+        sigma_scale=fit.sigma_scale,
+        n_points=n_points,
+    )
+
+
+#: A line-of-sight fit whose chi2/dof exceeds this is not explained by the range noise alone.
+CHI2_PLAUSIBLE = 1.3
+
+
+def _better(a: CylinderFit, b: CylinderFit) -> bool:
+    """Is fit ``a`` preferable to ``b``? Fits the noise model explains (chi2/dof below
+    CHI2_PLAUSIBLE) beat those it does not; among equals, more inliers win (a wrong, larger
+    cylinder through the part and its surroundings can collect more points, at a worse chi2)."""
+    if a.line_of_sight and b.line_of_sight:
+        ok_a, ok_b = a.chi2_dof < CHI2_PLAUSIBLE, b.chi2_dof < CHI2_PLAUSIBLE
+        if ok_a != ok_b:
+            return ok_a
+        if not ok_a:
+            return a.chi2_dof < b.chi2_dof
+    return a.n_inliers > b.n_inliers
+
+
+def _noise_explains(fit: CylinderFit) -> bool:
+    return fit.chi2_dof < CHI2_PLAUSIBLE or not fit.line_of_sight
+
+
+def _plausible(fit: CylinderFit, pts: FloatArray, start: Cylinder, opt: DetectOptions) -> bool:
+    """Accept a fit without further RANSAC attempts: the noise model explains it and it keeps
+    most of the points that lay near the RANSAC candidate."""
+    near = int(np.count_nonzero(np.abs(start.surface_distance(pts)) < opt.threshold))
+    chi_ok = fit.chi2_dof < CHI2_PLAUSIBLE or not fit.line_of_sight
+    return chi_ok and fit.n_inliers >= 0.7 * near
+
+
+def _select_above_table(
+    pts: FloatArray, rays: Rays, fit: CylinderFit, table: tuple[FloatArray, float, FloatArray], opt: DetectOptions
+) -> CylinderFit:
+    """Refit on the beams whose predicted first hit on the fitted part lies at least
+    :data:`BASE_CLEARANCE` above the table (instead of cutting a slab of the support plane's
+    width, which drops the part's bottom 20 mm) and not above the part's top
+    (:func:`_top_height`), within the candidate gate of the detection. Keeps ``fit`` if the refit
+    fails."""
+    up, height, origin = table
+    t, gap = fit.cylinder.ray_range(rays.origins, rays.dirs)
+    h = (rays.origins + t[:, None] * rays.dirs - origin) @ up - height
+    gate = 2.0 * opt.threshold
+    ok = (h >= BASE_CLEARANCE) & (np.abs(rays.ranges - t) < gate) & (gap < gate)
+    if np.count_nonzero(ok) < opt.min_inliers:
+        return fit
+    ok &= h <= _top_height(h[ok], h[fit.inliers])
+    cand = np.flatnonzero(ok)
+    if cand.size < opt.min_inliers:
+        return fit
+    try:
+        new = _los_fit(pts[cand], rays.subset(cand), fit.cylinder, opt)
+    except FitError:
+        return fit
+    if not _radius_ok(new.cylinder, opt) or new.n_inliers < opt.min_inliers:
+        return fit
+    return _reindex(new, cand, pts.shape[0])
+
+
+def fit_cylinder(
+    points: ArrayLike,
+    *,
+    line_of_sight: bool = True,
+    p: float = kinematics.DEFAULT_P,
+    noise: NoiseModel | None = None,
+    rays: Rays | None = None,
+    options: DetectOptions | None = None,
+    initial: Cylinder | None = None,
+    rng: np.random.Generator | None = None,
+    optics: BeamOptics | None = None,
+    diameter_range: tuple[float, float] | None = None,
+) -> CylinderFit:
+    """Detect and fit the cylinder in a rig-frame cloud.
+
+    ``line_of_sight``: refine with the range residual along each point's beam; the beams come from
+    ``rays`` if given, else from inverting Eq. 1 with the rig at the origin and inner parameter
+    ``p``. Otherwise the orthogonal-distance fit with isotropic noise (``sigma`` estimated from
+    the residuals). ``initial`` skips detection. Raises :class:`FitError` when no cylinder is found.
+
+    ``optics``: the beam's footprint (:class:`~lrms.cylinder.footprint.BeamOptics`); given, the
+    line-of-sight fit is finished by :func:`~lrms.cylinder.footprint.footprint_fit` (the expected
+    echo of each beam's spot, the edge family chosen by the data) instead of the thin beam's grazing
+    weights and bias correction. ``diameter_range`` (m): only cylinders of a diameter in it are
+    candidates (a nominal diameter and its tolerance, :func:`nominal_diameter_range`); the
+    detection stages allow for the footprint's widening of the thin-beam fit (the spot diameter
+    at the candidate's range on top of the upper bound).
+    """
+    nm = noise if noise is not None else NoiseModel()
+    opt = options if options is not None else DetectOptions(threshold=max(0.03, 2.5 * nm.sigma_l))
+    if diameter_range is not None:
+        d_lo, d_hi = diameter_range
+        if not (np.isfinite(d_lo) and np.isfinite(d_hi) and 0 < d_lo < d_hi):
+            raise FitError(f"diameter range must be 0 < low < high, got {diameter_range}")
+        opt = replace(opt, radius_range=(d_lo / 2, d_hi / 2))
+    if optics is not None:
+        opt = replace(opt, spot=(optics.exit_diameter_m, optics.divergence_rad))
+    g = rng if rng is not None else np.random.default_rng(0)
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise FitError(f"points must have shape (N, 3), got {pts.shape}")
+    finite = np.all(np.isfinite(pts), axis=1)
+    if not np.all(finite):
+        raise FitError(f"{int(np.count_nonzero(~finite))} point(s) are not finite")
+    if pts.shape[0] < opt.min_inliers:
+        raise FitError(f"too few points for a cylinder: {pts.shape[0]} (need {opt.min_inliers})")
+    if rays is not None and rays.ranges.shape[0] != pts.shape[0]:
+        raise FitError("rays and points differ in length")
+    rr = (rays if rays is not None else rays_from_points(pts, p, nm)) if line_of_sight else None
+    best: CylinderFit | None = None
+    plane: tuple[FloatArray, float] | None = None
+    errors: list[str] = []
+    n_try = 1 if initial is not None else max(opt.attempts, opt.max_attempts, 1)
+    off_walls = dominant_planes(pts, opt, g)[0] if initial is None else None
+    for attempt in range(n_try):
+        if attempt >= max(opt.attempts, 1) and best is not None and _noise_explains(best):
+            break
+        try:
+            if initial is not None:
+                start, pl = initial, None
+            else:
+                start, pl = detect_cylinder(pts, opt, g, candidates=off_walls)
+            use = _off_support(pts, start, pl, opt)
+            fit = _refine_from(pts[use], start, line_of_sight, None if rr is None else rr.subset(use), opt)
+            fit = _reindex(fit, use, pts.shape[0])
+        except FitError as exc:
+            errors.append(str(exc))
+            continue
+        if best is None or _better(fit, best):
+            best, plane = fit, pl
+        if initial is None and _plausible(fit, pts, start, opt):
+            break
+    if best is None:
+        last = errors[-1] if errors else "no candidate"
+        raise FitError(last if last.startswith("no cylinder found") else f"no cylinder found: {last}")
+    base = None
+    if plane is not None:
+        pn, po = plane
+        denom = float(pn @ best.cylinder.direction)
+        if abs(denom) > 0.9:  # the support plane: nearly perpendicular to the axis
+            s = (po - float(pn @ best.cylinder.point)) / denom
+            base = best.cylinder.point + s * best.cylinder.direction
+        if rr is not None and initial is None:
+            table = table_height(pts, best, plane, opt)
+            if table is not None:
+                best = _select_above_table(pts, rr, best, table, opt)
+                up, height, origin = table
+                base = best.cylinder.point + (height - float((best.cylinder.point - origin) @ up)) * up
+    footprint_won = False
+    if rr is not None and optics is not None:
+        fp = footprint_fit(pts, rr, best, optics)
+        footprint_won = fp.extra.get("edge_mode_first", -1.0) >= 0
+        best = fp if footprint_won else replace(best, extra=fp.extra)  # the thin beam explains the data best
+    if rr is not None and not footprint_won:
+        lat = GRAZING_SIGMA if opt.grazing_sigma < 0 else opt.grazing_sigma
+        best = grazing_weighted_fit(pts, rr, best, lat, radius_range=opt.radius_range)
+        if opt.bias_correction:
+            best = bias_corrected(best, rr.subset(best.inliers))
+    if diameter_range is not None and not diameter_range[0] <= best.diameter <= diameter_range[1]:
+        raise FitError(
+            f"no cylinder of the nominal diameter found: {1e3 * best.diameter:.1f} mm is outside"
+            f" [{1e3 * diameter_range[0]:.1f}, {1e3 * diameter_range[1]:.1f}] mm"
+        )
+    return replace(best, plane=plane, base_point=base, n_points=int(pts.shape[0]))
