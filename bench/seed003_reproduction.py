@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrms import kinematics
+from lrms.budget import SensorErrors
 from lrms.covariance import NoiseModel
 from lrms.cylinder import Cylinder, Rays, rays_from_points
 from lrms.errors import LrmsError
@@ -199,7 +200,36 @@ def section_bias(n_scans: int, rng: np.random.Generator) -> None:
             )
 
 
-def section_coverage(n_scans: int, n_mc: int, k: float, points: str, rng: np.random.Generator) -> None:
+#: Motor speed of the full-sweep coverage scans: 0.6 deg per scan at 25 Hz.
+SWEEP_SPEED = float(np.deg2rad(0.6 * 25.0))
+
+
+def systematic_scan(
+    truth: FloatArray, noise: NoiseModel, errors: SensorErrors, rng: np.random.Generator, p: float = P
+) -> tuple[FloatArray, Rays]:
+    """:func:`noisy_scan` with one draw of ``errors``' systematic effects (range offset, scale and
+    drift, angle zeros, per-scan motor-angle errors) from their distributions, as a real unit
+    would carry them."""
+    from lrms.budget import BeamGeometry, ReplicaSystematics
+
+    l, a, b = kinematics.inverse(truth, p)
+    sysm = ReplicaSystematics(errors, BeamGeometry(a, b, p, SWEEP_SPEED))
+    lt, at, bt = (v[0] for v in sysm.perturb(l, a, b, 1, rng))
+    ln, an, bn = noise.perturb(lt, at, bt, rng)
+    pts = kinematics.forward(ln, an, bn, p)
+    return pts, rays_from_points(pts, p, noise)
+
+
+def section_coverage(
+    n_scans: int, n_mc: int, k: float, points: str, rng: np.random.Generator, systematics: bool = False
+) -> None:
+    """Coverage of the three intervals and of the budget's ``d +- U`` (k = 2). Without
+    ``systematics`` the scans carry the seed's noise only and the budget is built with no
+    systematic inputs (:meth:`SensorErrors.none`); with it every scan carries one draw of an
+    uncalibrated LMS1xx's systematic effects (:class:`SensorErrors` defaults) and the budget and
+    the Monte Carlo replicas carry the same distributions. The Monte Carlo interval is computed
+    twice on every scan, with the replicas' multi-start and without it (the interval before)."""
+    from lrms.budget import BeamGeometry, cylinder_budget, replica_systematics
     from lrms.crb import cylinder_crb
     from lrms.cylinder import fit_cylinder
     from lrms.uncertainty import critical_point_interval, gum_interval, monte_carlo_interval
@@ -208,27 +238,41 @@ def section_coverage(n_scans: int, n_mc: int, k: float, points: str, rng: np.ran
     cyl = seed_cylinder()
     d_true = cyl.diameter
     truth = visible_surface_points() if points == "567" else sweep_points(step_beta_deg=0.6)
-    print(f"\n== coverage over {n_scans} simulated scans of {truth.shape[0]} points ({points}), r = 0.138 m, k = {k:g}")
+    errors = SensorErrors() if systematics else SensorErrors.none()
+    print(
+        f"\n== coverage over {n_scans} simulated scans of {truth.shape[0]} points ({points}), r = 0.138 m, k = {k:g}, "
+        f"systematic effects {'drawn (uncalibrated LMS1xx)' if systematics else 'none'}"
+    )
     t0 = time.perf_counter()
     ci_truth = critical_point_interval(cyl, truth, noise=noise, k=k, p=P)
-    d_los, d_orth, u_gum, w_mc = (np.empty(n_scans) for _ in range(4))
-    in_a_seed = in_a_own = in_b = in_c = in_a_orth = 0
+    d_los, d_orth, u_gum, u_c, w_mc, w_mc1 = (np.empty(n_scans) for _ in range(6))
+    in_a_seed = in_a_own = in_b = in_c = in_c1 = in_a_orth = in_u = 0
     for s in range(n_scans):
-        pts, rays = noisy_scan(truth, noise, rng)
+        pts, rays = systematic_scan(truth, noise, errors, rng) if systematics else noisy_scan(truth, noise, rng)
         fit = fit_cylinder(pts, rays=rays, noise=noise, initial=cyl)
         orth = fit_cylinder(pts, line_of_sight=False, noise=noise, initial=cyl)
         d_los[s], d_orth[s] = fit.diameter, orth.diameter
         in_a_seed += ci_truth.d_min <= fit.diameter <= ci_truth.d_max
         in_a_orth += ci_truth.d_min <= orth.diameter <= ci_truth.d_max
-        own = critical_point_interval(fit.cylinder, rays=rays.subset(fit.inliers), noise=noise, k=k, p=P)
+        inl = rays.subset(fit.inliers)
+        own = critical_point_interval(fit.cylinder, rays=inl, noise=noise, k=k, p=P)
         in_a_own += own.d_min <= d_true <= own.d_max
         g = gum_interval(fit)
         u_gum[s] = g.std
         in_b += g.low <= d_true <= g.high
+        _, al, be = kinematics.inverse(pts[fit.inliers], P)
+        beams = BeamGeometry(al, be, P, SWEEP_SPEED)
+        budget = cylinder_budget(fit, inl, beams, errors=errors, noise=noise)
+        u_c[s] = budget.combined
+        in_u += abs(fit.diameter - d_true) <= budget.expanded
         if n_mc > 0:
-            mc = monte_carlo_interval(fit, rays.subset(fit.inliers), noise=noise, n=n_mc, rng=rng, p=P)
+            sysm = replica_systematics(budget, errors, beams)
+            mc = monte_carlo_interval(fit, inl, noise=noise, n=n_mc, rng=rng, p=P, systematics=sysm)
             w_mc[s] = mc.high - mc.low
             in_c += mc.low <= d_true <= mc.high
+            mc1 = monte_carlo_interval(fit, inl, noise=noise, n=n_mc, rng=rng, p=P, systematics=sysm, multistart=False)
+            w_mc1[s] = mc1.high - mc1.low
+            in_c1 += mc1.low <= d_true <= mc1.high
     dt = time.perf_counter() - t0
     n = n_scans
     rays_true = rays_from_points(truth, P, noise)
@@ -236,19 +280,27 @@ def section_coverage(n_scans: int, n_mc: int, k: float, points: str, rng: np.ran
     print(f"  critical-point interval from the true geometry: d +- {1e3 * ci_truth.half_width:.2f} mm")
     for name, d in (("line-of-sight fit", d_los), ("orthogonal fit", d_orth)):
         print(f"  {name:<18s}: mean error {1e3 * (d.mean() - d_true):+.3f} mm, std {1e3 * d.std(ddof=1):.3f} mm")
-    print(f"  Cramer-Rao bound on std(d): {1e3 * crb:.3f} mm; mean GUM u(d): {1e3 * u_gum.mean():.3f} mm")
+    print(
+        f"  Cramer-Rao bound on std(d): {1e3 * crb:.3f} mm; mean GUM u(d): {1e3 * u_gum.mean():.3f} mm; "
+        f"mean budget u_c: {1e3 * u_c.mean():.3f} mm"
+    )
     rows = [
         Coverage("(a) critical point from truth: LOS fits inside", "'almost all'", in_a_seed, n),
         Coverage("(a) critical point from truth: orthogonal fits inside", "'almost all'", in_a_orth, n),
         Coverage("(a) critical point from each fit: covers truth", "'almost all'", in_a_own, n),
-        Coverage("(b) GUM d +- 2u: covers truth", "95.45 %", in_b, n),
+        Coverage("(b) GUM d +- 2u (fit covariance): covers truth", "95.45 %", in_b, n),
+        Coverage("budget d +- U (U = 2 u_c): covers truth", "~95 %", in_u, n),
     ]
     if n_mc > 0:
-        rows.append(Coverage(f"(c) Monte Carlo, {n_mc} replicas: covers truth", "95 %", in_c, n))
+        rows.append(Coverage(f"(c) Monte Carlo, {n_mc} replicas, multi-start: covers truth", "95 %", in_c, n))
+        rows.append(Coverage(f"(c) Monte Carlo, {n_mc} replicas, one solve (before)", "95 %", in_c1, n))
     for c in rows:
         print(c.line())
     if n_mc > 0:
-        print(f"  mean Monte Carlo 95 % width {1e3 * w_mc.mean():.3f} mm vs GUM 4u {4e3 * u_gum.mean():.3f} mm")
+        print(
+            f"  mean Monte Carlo 95 % width {1e3 * w_mc.mean():.3f} mm (one solve: {1e3 * w_mc1.mean():.3f} mm) "
+            f"vs GUM 4u {4e3 * u_gum.mean():.3f} mm, budget 2U {4e3 * u_c.mean():.3f} mm"
+        )
     print(f"  ({dt:.0f} s)")
 
 
@@ -389,6 +441,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--k", type=float, default=1.0)
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--points", choices=["567", "sweep"], default="567")
+    ap.add_argument(
+        "--systematics",
+        action="store_true",
+        help="coverage: every scan carries one draw of an uncalibrated LMS1xx's systematic effects",
+    )
     ap.add_argument("--scene", default="seed003", help="sim.scene scene of the accuracy sweeps")
     ap.add_argument("--clutter", type=float, default=0.1, help="share of uniform clutter points (accuracy)")
     ap.add_argument(
@@ -418,7 +475,7 @@ def main(argv: list[str] | None = None) -> int:
     if "bias" in only:
         section_bias(args.bias_scans, rng)
     if "coverage" in only:
-        section_coverage(args.scans, args.mc, args.k, args.points, rng)
+        section_coverage(args.scans, args.mc, args.k, args.points, rng, args.systematics)
     if "accuracy" in only:
         gs = None if args.grazing_sigma_mm is None else 1e-3 * args.grazing_sigma_mm
         section_accuracy(args.sweeps, rng, args.scene, args.clutter, gs, not args.no_bias_correction)

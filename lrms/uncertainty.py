@@ -20,10 +20,13 @@ b. :func:`gum_interval`: ``u(d) = 2 sqrt(var r)`` from the fit's covariance (GUM
 c. :func:`monte_carlo_interval`: GUM Supplement 1. The scan is re-simulated from the fitted
    cylinder with the noise model (the same beams, Eq. 5 noise on ``(l, alpha, beta)``), every
    replica is refitted (batched Levenberg-Marquardt from the fit, same residuals as
-   :func:`lrms.cylinder.refine_cylinder`), and the interval runs between the order statistics
-   that hold a further replica with 95 % probability (:func:`coverage_order_statistics`; with
-   M = 200 replicas: the 5th and the 196th, where plain 2.5 / 97.5 % quantiles would cover
-   only ~94 %).
+   :func:`lrms.cylinder.refine_cylinder`, with the fit's multi-start), and the interval runs
+   between the order statistics that hold a further replica with 95 % probability
+   (:func:`coverage_order_statistics`; with M = 200 replicas: the 5th and the 196th, where
+   plain 2.5 / 97.5 % quantiles would cover only ~94 %). Given
+   :class:`lrms.budget.ReplicaSystematics`, the replicas also draw the budget's systematic effects
+   (range offset and scale, angle zeros, per-scan motor errors, ...) from their distributions
+   (:mod:`lrms.budget`).
 """
 
 from __future__ import annotations
@@ -36,8 +39,10 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import minimize
 
 from lrms import kinematics
+from lrms.budget import ReplicaSystematics
 from lrms.covariance import NoiseModel
 from lrms.cylinder import (
+    MULTISTART,
     SILHOUETTE_SIGMA,
     Cylinder,
     CylinderFit,
@@ -401,6 +406,37 @@ def coverage_order_statistics(samples: ArrayLike, coverage: float) -> tuple[floa
     return float(x[r - 1]), float(x[m - r])
 
 
+def _replica_fit(
+    fun: BatchResiduals, jfun: BatchResiduals, rep: int, sigma_l: float, iterations: int, multistart: bool
+) -> FloatArray:
+    """Refit ``rep`` replicas: one batched solve from the truth (``theta = 0``), then, with
+    ``multistart``, the fit's multi-start (:func:`lrms.cylinder._multistart`): restarts at radii
+    :data:`lrms.cylinder.MULTISTART` sigma_l around that solution, the lowest cost wins."""
+    idx = np.arange(rep)
+    theta = batched_levenberg_marquardt(fun, jfun, np.zeros((rep, 5)), max_iter=iterations)
+    if not multistart:
+        return theta
+
+    def cost(th: FloatArray) -> FloatArray:
+        c = np.full(rep, np.inf)
+        ok = np.all(np.isfinite(th), axis=1)
+        if np.any(ok):
+            r = fun(th[ok], idx[ok])
+            c[ok] = np.sum(r * r, axis=-1)
+        return c
+
+    best, best_cost = theta, cost(theta)
+    for dr in MULTISTART:
+        start = np.where(np.isfinite(theta), theta, 0.0)
+        start[:, 4] += dr * sigma_l
+        trial = batched_levenberg_marquardt(fun, jfun, start, max_iter=iterations)
+        c = cost(trial)
+        better = c < best_cost
+        best = np.where(better[:, None], trial, best)
+        best_cost = np.where(better, c, best_cost)
+    return best
+
+
 def monte_carlo_interval(
     fit: CylinderFit,
     rays: Rays | None = None,
@@ -413,17 +449,24 @@ def monte_carlo_interval(
     p: float = kinematics.DEFAULT_P,
     rng: np.random.Generator | None = None,
     iterations: int = 15,
+    systematics: ReplicaSystematics | None = None,
+    multistart: bool = True,
 ) -> MonteCarloResult:
     """GUM-S1 interval: re-simulate the inliers' beams from the fitted cylinder, refit, quantiles.
 
     ``rays`` are the beams of the fit's inliers (``rays.subset(fit.inliers)``); the replicas get
-    the rig's noise (Eq. 5) on every beam. For an orthogonal-distance fit the replicas are
+    the rig's noise (Eq. 5) on every beam and, given ``systematics``
+    (:func:`lrms.budget.replica_systematics`), the systematic effects of the budget drawn from
+    their distributions: one range offset, scale, temperature drift and angle zeros per replica,
+    one motor-angle error per scan, and the diameter-level rows (edge model, calibration) as a
+    normal error of the replica's diameter. Each replica is refitted with the fit's multi-start
+    (``multistart``; :func:`_replica_fit`). For an orthogonal-distance fit the replicas are
     refitted with orthogonal distances too, so the interval describes that estimator. Without
     rays (clouds from elsewhere), give the inlier ``points`` of an orthogonal fit: their radial
     projections on the cylinder get isotropic Gaussian noise of ``isotropic_sigma`` (default:
-    the fit's rms residual). The replicas are refitted without the grazing weights; when the fit
-    was bias-corrected (``fit.extra["bias_correction_diameter_m"]``) they are shifted by the
-    same correction.
+    the fit's rms residual); ``systematics`` do not apply there. The replicas are refitted
+    without the grazing weights; when the fit was bias-corrected
+    (``fit.extra["bias_correction_diameter_m"]``) they are shifted by the same correction.
     """
     if n < 10:
         raise LrmsError(f"Monte Carlo needs at least 10 replicas, got {n}")
@@ -445,29 +488,33 @@ def monte_carlo_interval(
             raise LrmsError(f"isotropic sigma must be > 0, got {iso}")
     else:
         raise LrmsError("Monte Carlo needs the inliers' rays (or, for an orthogonal fit, their points)")
+    if systematics is not None and iso is not None:
+        raise LrmsError("systematic effects need the inliers' rays (a cloud from elsewhere has no beams)")
     l0, a0, b0 = kinematics.inverse(truth, p)
     m_pts = truth.shape[0]
     chunk = max(1, int(1_500_000 // (10 * max(m_pts, 1))))
+    sig_l = nm.sigma_l if iso is None else iso
     out = np.empty(n)
     for s in range(0, n, chunk):
         rep = min(chunk, n - s)
         if iso is None:
-            ln, an, bn = nm.perturb(
-                np.broadcast_to(l0, (rep, m_pts)),
-                np.broadcast_to(a0, (rep, m_pts)),
-                np.broadcast_to(b0, (rep, m_pts)),
-                g,
-            )
+            if systematics is not None:
+                lt, at, bt = systematics.perturb(l0, a0, b0, rep, g)
+            else:
+                lt, at, bt = (np.broadcast_to(v, (rep, m_pts)) for v in (l0, a0, b0))
+            ln, an, bn = nm.perturb(lt, at, bt, g)
             pts = kinematics.forward(ln, an, bn, p)  # (rep, M, 3)
         else:
             pts = truth + g.normal(0.0, iso, (rep, m_pts, 3))
         fun, jfun = _replica_problem(frame, pts, fit.line_of_sight, nm, p)
-        theta = batched_levenberg_marquardt(fun, jfun, np.zeros((rep, 5)), max_iter=iterations)
+        theta = _replica_fit(fun, jfun, rep, sig_l, iterations, multistart and fit.line_of_sight)
         out[s : s + rep] = 2.0 * theta[:, 4] + 2.0 * cyl.radius
     # a bias-corrected fit: the replicas are plain fits, so they take the fit's correction too (its
     # spread from scan to scan, 0.006 mm on the seed's 567 points and 0.013 mm on the ray-cast sweeps of
     # docs/cylinder.md, is small against theirs)
     out -= fit.extra.get("bias_correction_diameter_m", 0.0)
+    if systematics is not None and systematics.diameter_u_m > 0:
+        out += g.normal(0.0, systematics.diameter_u_m, n)
     ok = np.isfinite(out)
     if np.count_nonzero(ok) < 10:
         raise FitError("Monte Carlo refits failed")

@@ -26,6 +26,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from lrms import budget as _budget
 from lrms.errors import LrmsError
 from lrms.kinematics import RigCalibration
 from service.errors import ConfigError
@@ -75,6 +76,69 @@ class DeviceConfig(_Strict):
         return v
 
 
+class OpticsConfig(_Strict):
+    """The scanner's light spot as the cylinder fit models it (``[scanner.optics]``): ``model``
+    "lms1xx" (a spot ``spot_exit_m + divergence_rad x range`` wide, defaults the LMS1xx's 8 mm and
+    15 mrad, SICK 8012471 section 3.6.2; the fit models each beam's expected echo,
+    docs/cylinder.md) or "ideal" (the thin beam). Unset, a simulated rig follows its ``[sim]
+    sensor`` and a real one takes "ideal": the footprint fit is opt-in until it meets its accuracy
+    goal (docs/cylinder.md section 7)."""
+
+    model: Literal["ideal", "lms1xx"] | None = None
+    spot_exit_m: float = Field(default=0.008, ge=0.0, le=0.5)
+    divergence_rad: float = Field(default=0.015, ge=0.0, le=0.5)
+
+
+class ScannerErrors(_Strict):
+    """The scanner's type-B inputs of the uncertainty budget, as standard uncertainties
+    (:class:`lrms.budget.SensorErrors`; docs/cylinder.md, "The budget"). Defaults: an uncalibrated
+    LMS1xx (SICK's +-30 mm typical systematic range error, rectangular: 17.3 mm)."""
+
+    range_offset_u_m: float = Field(default=_budget.LMS1XX_RANGE_OFFSET_U, ge=0.0, le=1.0)
+    range_offset_distribution: Literal["rectangular", "normal"] = "rectangular"
+    range_scale_u_ppm: float = Field(default=0.0, ge=0.0, le=1e5)
+    range_scale_distribution: Literal["rectangular", "normal"] = "normal"
+    temperature_coeff_m_per_k: float = Field(default=0.0, ge=-1.0, le=1.0)
+    temperature_u_k: float = Field(default=5.0, ge=0.0, le=1000.0)
+    alpha_zero_u_deg: float = Field(default=math.degrees(_budget.DEFAULT_ZERO_U), ge=0.0, le=10.0)
+
+
+class MotorErrors(_Strict):
+    """The drive's type-B inputs of the uncertainty budget (per scan: every beam of a scan shares
+    its motor angle): zero, encoder quantisation (one count of the default drive, rectangular),
+    timing error of the motor angle read for a scan (ours: 1 ms)."""
+
+    beta_zero_u_deg: float = Field(default=math.degrees(_budget.DEFAULT_ZERO_U), ge=0.0, le=10.0)
+    encoder_u_deg: float = Field(default=math.degrees(_budget.DEFAULT_ENCODER_U), ge=0.0, le=10.0)
+    timing_jitter_u_s: float = Field(default=_budget.DEFAULT_TIMING_JITTER_U, ge=0.0, le=1.0)
+
+
+class ScannerConfig(DeviceConfig):
+    """The scanner: URL and the scan mode the service sets (an LMS1xx: 25 Hz / 0.25 deg or 50 Hz / 0.5 deg),
+    and the type-B inputs of the uncertainty budget (``[scanner.errors]``)."""
+
+    errors: ScannerErrors = Field(default_factory=ScannerErrors)
+    scan_frequency_hz: Literal[25, 50] = 25
+    optics: OpticsConfig = Field(default_factory=OpticsConfig)
+    resolution_deg: float = 0.25
+
+    @field_validator("resolution_deg")
+    @classmethod
+    def _resolution(cls, v: float) -> float:
+        if v not in (0.25, 0.5):
+            raise ValueError(f"an LMS1xx scans at 0.25 or 0.5 deg, not {v}")
+        return v
+
+    login_password_hash: int | None = Field(default=None, ge=0, le=0xFFFFFFFF, repr=False)
+    """A secret: never in ``/rig``, logs or error messages."""
+
+    @model_validator(mode="after")
+    def _mode(self) -> ScannerConfig:
+        if self.scan_frequency_hz == 50 and self.resolution_deg == 0.25:
+            raise ValueError("an LMS1xx cannot scan at 50 Hz with 0.25 deg (use 25 Hz/0.25 deg or 50 Hz/0.5 deg)")
+        return self
+
+
 class MotorConfig(DeviceConfig):
     """The motor: URL and the limits of the output shaft in the drive's own frame (degrees, the
     angles of ``lrms motor move``; beta = shaft angle - ``[kinematics] motor_zero_deg``).
@@ -85,6 +149,8 @@ class MotorConfig(DeviceConfig):
     defaults are one turn either way of the zero and the CiA 402 driver's own maxima.
     """
 
+    errors: MotorErrors = Field(default_factory=MotorErrors)
+    """The type-B inputs of the uncertainty budget (``[motor.errors]``)."""
     min_angle_deg: float = Field(default=-180.0, ge=-3600.0, le=3600.0)
     max_angle_deg: float = Field(default=180.0, ge=-3600.0, le=3600.0)
     max_velocity_deg_s: float = Field(default=90.0, ge=MIN_SPEED_DEG_S, le=3600.0)
@@ -107,43 +173,6 @@ class MotorConfig(DeviceConfig):
             "velocity_deg_s": min(20.0, self.max_velocity_deg_s),
             "acceleration_deg_s2": min(90.0, self.max_acceleration_deg_s2),
         }
-
-
-class OpticsConfig(_Strict):
-    """The scanner's light spot as the cylinder fit models it (``[scanner.optics]``): ``model``
-    "lms1xx" (a spot ``spot_exit_m + divergence_rad x range`` wide, defaults the LMS1xx's 8 mm and
-    15 mrad, SICK 8012471 section 3.6.2; the fit models each beam's expected echo,
-    docs/cylinder.md) or "ideal" (the thin beam). Unset, a simulated rig follows its ``[sim]
-    sensor`` and a real one takes "ideal": the footprint fit is opt-in until it meets its accuracy
-    goal (docs/cylinder.md section 7)."""
-
-    model: Literal["ideal", "lms1xx"] | None = None
-    spot_exit_m: float = Field(default=0.008, ge=0.0, le=0.5)
-    divergence_rad: float = Field(default=0.015, ge=0.0, le=0.5)
-
-
-class ScannerConfig(DeviceConfig):
-    """The scanner: URL and the scan mode the service sets (an LMS1xx: 25 Hz / 0.25 deg or 50 Hz / 0.5 deg)."""
-
-    scan_frequency_hz: Literal[25, 50] = 25
-    optics: OpticsConfig = Field(default_factory=OpticsConfig)
-    resolution_deg: float = 0.25
-
-    @field_validator("resolution_deg")
-    @classmethod
-    def _resolution(cls, v: float) -> float:
-        if v not in (0.25, 0.5):
-            raise ValueError(f"an LMS1xx scans at 0.25 or 0.5 deg, not {v}")
-        return v
-
-    login_password_hash: int | None = Field(default=None, ge=0, le=0xFFFFFFFF, repr=False)
-    """A secret: never in ``/rig``, logs or error messages."""
-
-    @model_validator(mode="after")
-    def _mode(self) -> ScannerConfig:
-        if self.scan_frequency_hz == 50 and self.resolution_deg == 0.25:
-            raise ValueError("an LMS1xx cannot scan at 50 Hz with 0.25 deg (use 25 Hz/0.25 deg or 50 Hz/0.5 deg)")
-        return self
 
 
 class NoiseConfig(_Strict):
@@ -251,11 +280,14 @@ class JobsConfig(_Strict):
 
 
 class FitConfig(_Strict):
-    """Fit defaults: the region of interest (world frame, metres) and the coverage factor k."""
+    """Fit defaults: the region of interest (world frame, metres), the ellipsoid factor k of the
+    critical-point interval and the coverage factor of the budget's expanded uncertainty."""
 
     roi_min_m: tuple[float, float, float] | None = None
     roi_max_m: tuple[float, float, float] | None = None
     k: float = Field(default=DEFAULT_K, ge=MIN_K, le=MAX_K)
+    coverage_factor: float = Field(default=2.0, gt=0.0, le=10.0)
+    """k of the budget's expanded uncertainty U = k u_c."""
     min_range_m: float = Field(default=0.05, ge=0.0)
     max_range_m: float = Field(default=20.0, gt=0.0)
 
@@ -341,6 +373,22 @@ class RigConfig(_Strict):
     @property
     def calibration(self) -> RigCalibration:
         return RigCalibration.from_dict(self.kinematics)
+
+    def sensor_errors(self) -> _budget.SensorErrors:
+        """``[scanner.errors]`` and ``[motor.errors]`` in SI for :mod:`lrms.budget`."""
+        se, me = self.scanner.errors, self.motor.errors
+        return _budget.SensorErrors(
+            range_offset_u_m=se.range_offset_u_m,
+            range_offset_distribution=se.range_offset_distribution,
+            range_scale_u_ppm=se.range_scale_u_ppm,
+            range_scale_distribution=se.range_scale_distribution,
+            temperature_coeff_m_per_k=se.temperature_coeff_m_per_k,
+            temperature_u_k=se.temperature_u_k,
+            alpha_zero_u_rad=math.radians(se.alpha_zero_u_deg),
+            beta_zero_u_rad=math.radians(me.beta_zero_u_deg),
+            encoder_u_rad=math.radians(me.encoder_u_deg),
+            timing_jitter_u_s=me.timing_jitter_u_s,
+        )
 
     @property
     def sim_kinematics(self) -> dict[str, Any]:

@@ -3,8 +3,10 @@
 The cylinder is fitted in the rig frame with every point's own beam (origin and direction from
 its alpha and beta, not re-derived from the point), so the line-of-sight fit of
 :func:`lrms.cylinder.fit_cylinder` sees exactly what the rig measured. The uncertainty is reported
-three ways (:mod:`lrms.uncertainty`): the seed's critical-point interval at coverage factor ``k``,
-the GUM standard uncertainty from the fit's covariance, and optionally a Monte Carlo interval.
+three ways (:mod:`lrms.uncertainty`): the seed's critical-point interval at ellipsoid factor ``k``,
+the GUM standard uncertainty from the fit's covariance, and optionally a Monte Carlo interval; and
+the GUM budget of :mod:`lrms.budget` (one row per source, ``u_c``, ``U = k u_c``, k = 2), whose
+systematic effects the Monte Carlo replicas draw too.
 Positions in the result are in the world frame (``world_from_rig`` of the calibration).
 """
 
@@ -16,10 +18,11 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from lrms import kinematics
+from lrms.budget import BeamGeometry, CalibrationInput, SensorErrors
 from lrms.covariance import NoiseModel
 from lrms.errors import FitError
 from service.config import DEFAULT_K, RigConfig
-from service.models import MeasurementRequest
+from service.models import MeasurementRequest, resolve_sweep
 from service.sweep import MappedSweep, roi_mask
 
 FloatArray = NDArray[np.float64]
@@ -28,6 +31,8 @@ FloatArray = NDArray[np.float64]
 ELBOW_TRIM = 4.0
 #: The GUM interval is the fit's standard uncertainty times this factor (about 95 %).
 GUM_COVERAGE_FACTOR = 2.0
+#: Motor speed assumed for the budget's timing row when none is given (the rig's default sweep).
+DEFAULT_SWEEP_SPEED_DEG_S = 10.0
 
 
 def noise_model(config: RigConfig) -> NoiseModel:
@@ -76,6 +81,10 @@ def cylinder_result(
     world_from_rig: FloatArray | None = None,
     optics: Any = None,
     diameter_range: tuple[float, float] | None = None,
+    errors: SensorErrors | None = None,
+    beams: BeamGeometry | None = None,
+    coverage_factor: float = 2.0,
+    calibration: CalibrationInput | None = None,
 ) -> tuple[dict[str, Any], Any, Any]:
     """Cylinder fit, its three intervals and the JSON result: the one implementation behind the
     service's cylinder measurements and ``lrms fit --model cylinder``.
@@ -87,21 +96,29 @@ def cylinder_result(
     surface. ``k``: coverage factor of the critical-point interval (``None``:
     :data:`service.config.DEFAULT_K`). ``monte_carlo``: Monte Carlo refits (0: none).
     ``world_from_rig`` (4 x 4): positions and directions of the result in that frame; the axis
-    direction's sign is canonical (largest component positive).
+    direction's sign is canonical (largest component positive). ``errors``: the budget's type-B
+    inputs (default :class:`lrms.budget.SensorErrors`: an uncalibrated LMS1xx); ``beams``: every
+    point's scan and motor angle, scan index and the motor speed (default: the angles recovered
+    from the points, scans from beta, 10 deg/s); ``coverage_factor``: k of ``U = k u_c``;
+    ``calibration``: a calibration's row (:class:`lrms.budget.CalibrationInput`).
 
     Returns ``(result, fit, critical_point_interval)``. Result keys: ``model``, ``n_points``,
     ``n_inliers``, ``diameter_m``, ``radius_m``, ``axis_point_m``, ``axis_direction``, ``rmse_m``,
     ``chi2_dof``, ``line_of_sight``, ``bias_correction_m`` (what the second-order bias correction
     subtracted from the diameter; ``None`` when not applied), ``p_m``, ``sigma_l_m``, ``base_point_m``, ``covariance``
-    {``parameters``, ``e1``, ``e2``, ``matrix``}, ``uncertainty`` {``k``, ``d_min_m``, ``d_max_m``,
-    ``std_m``, ``critical_point`` {``r_ce_m``, ``percentile``}, ``gum`` {``std_m``, ``low_m``,
+    {``parameters``, ``e1``, ``e2``, ``matrix``}, ``uncertainty`` {``budget`` (rows {``source``,
+    ``type``, ``u_x``, ``unit``, ``c``, ``u_m``, ``distribution``, ``note``}), ``combined_m``,
+    ``expanded_m``, ``k`` (the budget's coverage factor), ``correlation``, ``d_min_m``, ``d_max_m``,
+    ``std_m``, ``critical_point`` {``k``, ``r_ce_m``, ``percentile``}, ``gum`` {``std_m``, ``low_m``,
     ``high_m``, ``coverage``, ``coverage_factor``}, ``monte_carlo`` ({``n``, ``low_m``, ``high_m``,
-    ``std_m``, ``coverage``, ``n_failed``} or ``None``)}.
+    ``std_m``, ``coverage``, ``n_failed``, ``systematics``, ``multistart``} or ``None``)}.
     """
+    from lrms.budget import cylinder_budget, replica_systematics
     from lrms.cylinder import fit_cylinder
     from lrms.uncertainty import critical_point_interval, gum_interval, monte_carlo_interval
 
     kk = DEFAULT_K if k is None else float(k)
+    err = errors if errors is not None else SensorErrors()
     pts = np.asarray(points, dtype=np.float64)
     line_of_sight = rays is not None
     fit = fit_cylinder(
@@ -126,10 +143,27 @@ def cylinder_result(
         surf = surf - rad * (1.0 - cyl.radius / np.linalg.norm(rad, axis=1))[:, None]
         crit = critical_point_interval(cyl, surf, k=kk, isotropic_sigma=iso)
     gum = gum_interval(fit, coverage_factor=GUM_COVERAGE_FACTOR)
+    inlier_beams: BeamGeometry | None = None
+    if line_of_sight:
+        if beams is None:
+            _, al, be = kinematics.inverse(pts, p)
+            beams = BeamGeometry(al, be, p, float(np.deg2rad(DEFAULT_SWEEP_SPEED_DEG_S)))
+        inlier_beams = beams.subset(fit.inliers)
+    budget = cylinder_budget(
+        fit,
+        inlier_rays if line_of_sight else None,
+        inlier_beams,
+        errors=err,
+        noise=noise,
+        calibration=calibration,
+        k=coverage_factor,
+    )
     mc: dict[str, Any] | None = None
     if monte_carlo > 0:
         if line_of_sight:
-            m = monte_carlo_interval(fit, inlier_rays, noise=noise, n=monte_carlo, p=p, rng=rng)
+            assert inlier_beams is not None
+            sysm = replica_systematics(budget, err, inlier_beams)
+            m = monte_carlo_interval(fit, inlier_rays, noise=noise, n=monte_carlo, p=p, rng=rng, systematics=sysm)
         else:
             m = monte_carlo_interval(
                 fit, points=pts[fit.inliers], isotropic_sigma=isotropic_sigma, n=monte_carlo, rng=rng
@@ -141,6 +175,8 @@ def cylinder_result(
             "std_m": float(m.std),
             "coverage": float(m.coverage),
             "n_failed": int(m.n_failed),
+            "systematics": bool(line_of_sight),
+            "multistart": bool(line_of_sight),
         }
     tf = np.eye(4) if world_from_rig is None else np.asarray(world_from_rig, dtype=np.float64)
     rot = tf[:3, :3]
@@ -175,11 +211,11 @@ def cylinder_result(
         "footprint": _footprint_json(fit.extra) if optics is not None and line_of_sight else None,
         "diameter_range_m": None if diameter_range is None else [float(diameter_range[0]), float(diameter_range[1])],
         "uncertainty": {
-            "k": kk,
+            **budget.to_dict(),
             "d_min_m": float(crit.d_min),
             "d_max_m": float(crit.d_max),
             "std_m": float(fit.std_diameter),
-            "critical_point": {"r_ce_m": float(crit.r_ce), "percentile": float(crit.percentile)},
+            "critical_point": {"k": kk, "r_ce_m": float(crit.r_ce), "percentile": float(crit.percentile)},
             "gum": {
                 "std_m": float(gum.std),
                 "low_m": float(gum.low),
@@ -238,6 +274,9 @@ def fit_cylinder_result(
     )
     seed = request.options.seed if request.options.seed is not None else 0
     k = request.options.k if request.options.k is not None else config.fit.k
+    sweep = resolve_sweep(request.sweep, config)
+    speed = 0.0 if sweep.mode == "step" else float(np.deg2rad(sweep.speed_deg_s))  # step-and-scan: at rest
+    beams = BeamGeometry(alpha, beta, cal.p, speed, mapped.scan_index[keep])
     result, _, _ = cylinder_result(
         rays.points(),
         rays=rays,
@@ -249,6 +288,9 @@ def fit_cylinder_result(
         world_from_rig=cal.world_from_rig,
         optics=optics_for(config),
         diameter_range=_diameter_range(request),
+        errors=config.sensor_errors(),
+        beams=beams,
+        coverage_factor=config.fit.coverage_factor,
     )
     result["fit_seed"] = seed
     return result

@@ -2,9 +2,12 @@
 
 Cylinder: RANSAC detection, then the line-of-sight fit (each point's beam recovered by
 inverting Eq. 1 with the rig at the origin and inner parameter ``--p``), the critical-point
-interval (seed 003, Eq. 8-12, ellipsoids of ``--k``), the GUM standard uncertainty and, with
-``--monte-carlo N``, a GUM-S1 interval. ``--no-line-of-sight`` is for clouds from elsewhere:
-orthogonal distances, isotropic noise. Elbow: delegated to :mod:`service.cli.fit_elbow`.
+interval (seed 003, Eq. 8-12, ellipsoids of ``--k``), the GUM standard uncertainty, the GUM budget
+(:mod:`lrms.budget`: one row per source, ``U = k u_c`` with ``--coverage-factor``, type-B inputs
+from ``--config``'s ``[scanner.errors]`` / ``[motor.errors]`` or an uncalibrated LMS1xx's) and,
+with ``--monte-carlo N``, a GUM-S1 interval that draws the budget's systematic effects too.
+``--no-line-of-sight`` is for clouds from elsewhere: orthogonal distances, isotropic noise.
+Elbow: delegated to :mod:`service.cli.fit_elbow`.
 """
 
 from __future__ import annotations
@@ -73,6 +76,25 @@ def configure(parser: argparse.ArgumentParser) -> None:
     cyl.add_argument(
         "--divergence-mrad", type=float, default=15.0, help="beam divergence, full angle, mrad (LMS1xx: 15)"
     )
+    cyl.add_argument(
+        "--coverage-factor",
+        type=float,
+        default=None,
+        help="k of the budget's expanded uncertainty U = k u_c (default 2, or --config's [fit] coverage_factor)",
+    )
+    cyl.add_argument(
+        "--config",
+        metavar="RIG_TOML",
+        default=None,
+        help="rig config whose [scanner.errors] and [motor.errors] give the budget's type-B inputs "
+        "(default: an uncalibrated LMS1xx, docs/cylinder.md)",
+    )
+    cyl.add_argument(
+        "--sweep-speed-deg-s",
+        type=float,
+        default=10.0,
+        help="motor speed during the sweep, for the budget's timing row (default 10; 0: step-and-scan)",
+    )
     elbow = parser.add_argument_group("elbow")
     elbow.add_argument(
         "--degree", default=None, help="joint degree: 90, 45, any angle in deg (default: from the cloud)"
@@ -137,6 +159,8 @@ def fit_cylinder_file(args: argparse.Namespace, points: Any, calibration: Any = 
     """The cylinder branch: :func:`service.fitting.cylinder_result`, optional plot; a JSON-ready dict."""
     import numpy as np
 
+    from lrms import kinematics
+    from lrms.budget import BeamGeometry, SensorErrors
     from lrms.covariance import NoiseModel
     from lrms.cylinder import BeamOptics, nominal_diameter_range, rays_from_points
     from lrms.errors import LrmsError
@@ -148,6 +172,19 @@ def fit_cylinder_file(args: argparse.Namespace, points: Any, calibration: Any = 
         raise LrmsError(f"--sigma-l-mm must be > 0, got {args.sigma_l_mm}")
     if args.k is not None and not 0 < args.k <= 10:
         raise LrmsError(f"--k must be in (0, 10], got {args.k}")
+    if args.coverage_factor is not None and not 0 < args.coverage_factor <= 10:
+        raise LrmsError(f"--coverage-factor must be in (0, 10], got {args.coverage_factor}")
+    if not (np.isfinite(args.sweep_speed_deg_s) and 0 <= args.sweep_speed_deg_s <= 360):
+        raise LrmsError(f"--sweep-speed-deg-s must be in [0, 360], got {args.sweep_speed_deg_s}")
+    errors = SensorErrors()
+    coverage_factor = 2.0
+    if args.config is not None:
+        from service.config import load_config
+
+        cfg = load_config(args.config)
+        errors, coverage_factor = cfg.sensor_errors(), cfg.fit.coverage_factor
+    if args.coverage_factor is not None:
+        coverage_factor = float(args.coverage_factor)
     if not (np.isfinite(args.spot_exit_mm) and args.spot_exit_mm >= 0):
         raise LrmsError(f"--spot-exit-mm must be >= 0, got {args.spot_exit_mm}")
     if not (np.isfinite(args.divergence_mrad) and args.divergence_mrad >= 0):
@@ -173,6 +210,14 @@ def fit_cylinder_file(args: argparse.Namespace, points: Any, calibration: Any = 
         o, d = model.rays(obs.alpha, obs.beta)
         perp = np.hypot(obs.l * noise.sigma_alpha, (obs.l * np.sin(obs.alpha) + model.p) * noise.sigma_beta)
         rays = Rays(o, d, model.geometric_range(obs.l), np.full(obs.l.size, noise.sigma_l), perp)
+    beams = None
+    if rays is not None:
+        speed = float(np.deg2rad(args.sweep_speed_deg_s))
+        if calibration is not None:  # the calibrated rig's beam angles
+            beams = BeamGeometry(calibration[1].alpha, calibration[1].beta, calibration[0].model.p, speed)
+        else:
+            _, alpha, beta = kinematics.inverse(pts, args.p)
+            beams = BeamGeometry(alpha, beta, args.p, speed)
     core, fit, crit = cylinder_result(
         pts,
         rays=rays,
@@ -184,6 +229,9 @@ def fit_cylinder_file(args: argparse.Namespace, points: Any, calibration: Any = 
         isotropic_sigma=None if args.sigma_l_mm is None else noise.sigma_l,
         optics=optics,
         diameter_range=diameter_range,
+        errors=errors,
+        beams=beams,
+        coverage_factor=coverage_factor,
     )
     result: dict[str, Any] = {"model": "cylinder", "file": str(args.file), **core}
     if args.plot:
@@ -208,7 +256,7 @@ def _print_text(result: dict[str, Any]) -> None:
     ad = ", ".join(f"{v:.5f}" for v in result["axis_direction"])
     print(f"axis: point ({ap}) m, direction ({ad})")
     print(
-        f"critical point (k={u['k']:g}): [{u['d_min_m'] * 1e3:.3f}, {u['d_max_m'] * 1e3:.3f}] mm"
+        f"critical point (k={u['critical_point']['k']:g}): [{u['d_min_m'] * 1e3:.3f}, {u['d_max_m'] * 1e3:.3f}] mm"
         f" = d +- {(u['d_max_m'] - u['d_min_m']) * 500:.3f} mm"
     )
     g = u["gum"]
@@ -224,5 +272,22 @@ def _print_text(result: dict[str, Any]) -> None:
     if u.get("monte_carlo"):
         m = u["monte_carlo"]
         print(f"Monte Carlo ({m['n']}): 95 %: [{m['low_m'] * 1e3:.3f}, {m['high_m'] * 1e3:.3f}] mm")
+    print(budget_table(u))
     if result.get("plot"):
         print(f"plot: {result['plot']}")
+
+
+def budget_table(u: dict[str, Any]) -> str:
+    """The budget of a result's ``uncertainty`` as a text table (u in mm)."""
+    lines = [
+        "uncertainty budget (GUM):",
+        f"  {'source':<24s} {'type':<4s} {'u_x':>10s} {'unit':<4s} {'c (m/unit)':>11s} {'u (mm)':>8s}  distribution",
+    ]
+    for r in u["budget"]:
+        lines.append(
+            f"  {r['source']:<24s} {r['type']:<4s} {r['u_x']:>10.4g} {r['unit']:<4s} {r['c']:>11.4g} "
+            f"{r['u_m'] * 1e3:>8.4f}  {r['distribution']}"
+        )
+    lines.append(f"  combined u_c = {u['combined_m'] * 1e3:.3f} mm ({u['correlation']})")
+    lines.append(f"  expanded U = {u['k']:g} u_c = {u['expanded_m'] * 1e3:.3f} mm")
+    return "\n".join(lines)

@@ -42,6 +42,17 @@ def test_fit_cylinder_json_and_plot(
     assert out["line_of_sight"] is True and abs(out["axis_direction"][2]) > 0.9998
     assert 0 < out["bias_correction_m"] < u["std_m"]  # the silhouette's upward bias, subtracted
     assert np.asarray(out["covariance"]["matrix"]).shape == (5, 5)
+    # the GUM budget: rows in quadrature, U = 2 u_c, the fit's own row is the GUM u
+    rows = u["budget"]
+    assert u["k"] == 2.0 and rows[0]["source"] == "fit (type A)" and rows[0]["u_m"] == u["std_m"]
+    assert u["combined_m"] == pytest.approx(float(np.sqrt(sum(r["u_m"] ** 2 for r in rows))), rel=1e-12)
+    assert u["expanded_m"] == pytest.approx(2 * u["combined_m"], rel=1e-12)
+    assert {r["source"] for r in rows} >= {"range offset", "range scale", "alpha zero", "motor timing jitter"}
+    assert abs(out["diameter_m"] - d_true) <= u["expanded_m"]
+    # the Monte Carlo replicas draw the same systematic effects: an interval as wide as +-U, roughly
+    mc = u["monte_carlo"]
+    assert mc["systematics"] is True and mc["multistart"] is True
+    assert 0.6 < (mc["high_m"] - mc["low_m"]) / (2 * u["expanded_m"]) < 1.4
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
 
 
@@ -51,7 +62,9 @@ def test_fit_without_line_of_sight_is_the_biased_orthogonal_fit(
     f, d_true = sweep_file
     assert main(["fit", str(f), "--json", "--no-line-of-sight", "--k", "2"]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert out["line_of_sight"] is False and out["uncertainty"]["k"] == 2
+    assert out["line_of_sight"] is False and out["uncertainty"]["critical_point"]["k"] == 2
+    # a cloud from elsewhere: no beams, so only the fit's own row and the (absent) edge model
+    assert [r["source"] for r in out["uncertainty"]["budget"]] == ["fit (type A)", "footprint / edge model"]
     assert out["bias_correction_m"] is None  # defined for the line-of-sight fit only
     # on this rig's one-sided view the orthogonal fit comes out several mm small
     assert -0.012 < out["diameter_m"] - d_true < -0.004
@@ -68,6 +81,31 @@ def test_text_output_through_the_installed_command(sweep_file: tuple[Path, float
     )
     assert proc.returncode == 0, proc.stderr
     assert "diameter:" in proc.stdout and "critical point (k=3)" in proc.stdout and "GUM" in proc.stdout
+    assert "uncertainty budget (GUM):" in proc.stdout and "range offset" in proc.stdout
+    assert "expanded U = 2 u_c" in proc.stdout
+
+
+def test_budget_inputs_from_a_rig_config(
+    sweep_file: tuple[Path, float], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    f, _ = sweep_file
+    cfg = tmp_path / "rig.toml"
+    cfg.write_text(
+        "[sim]\n[scanner.errors]\nrange_offset_u_m = 0.002\n[motor.errors]\ntiming_jitter_u_s = 0.0\n"
+        "[fit]\ncoverage_factor = 3.0\n"
+    )
+    assert main(["fit", str(f), "--json", "--config", str(cfg)]) == 0
+    u = json.loads(capsys.readouterr().out)["uncertainty"]
+    rows = {r["source"]: r for r in u["budget"]}
+    assert rows["range offset"]["u_x"] == 0.002 and rows["motor timing jitter"]["u_m"] == 0.0
+    assert u["k"] == 3.0 and u["expanded_m"] == pytest.approx(3 * u["combined_m"])
+    # a negative uncertainty in the config is a clear one-line error
+    cfg.write_text("[sim]\n[scanner.errors]\nrange_offset_u_m = -0.01\n")
+    assert main(["fit", str(f), "--config", str(cfg)]) == 1
+    err = capsys.readouterr().err
+    assert (
+        err.startswith("error: ") and "scanner.errors.range_offset_u_m" in err and "greater than or equal to 0" in err
+    )
 
 
 def test_errors_are_one_line_and_exit_1(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

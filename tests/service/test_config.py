@@ -80,6 +80,26 @@ def test_bad_configs_are_clear_errors(text: str, message: str) -> None:
         parse_toml(text)
 
 
+def test_budget_inputs_come_from_scanner_and_motor_errors() -> None:
+    cfg = parse_toml(
+        REAL + "[scanner.errors]\nrange_offset_u_m = 0.005\nalpha_zero_u_deg = 0.02\n"
+        "[motor.errors]\nencoder_u_deg = 0.001\n[fit]\ncoverage_factor = 3\n"
+    )
+    e = cfg.sensor_errors()
+    assert e.range_offset_u_m == 0.005 and e.alpha_zero_u_rad == pytest.approx(np.deg2rad(0.02))
+    assert e.encoder_u_rad == pytest.approx(np.deg2rad(0.001)) and cfg.fit.coverage_factor == 3
+    d = parse_toml(REAL).sensor_errors()  # defaults: an uncalibrated LMS1xx, +-30 mm rectangular
+    assert d.range_offset_u_m == pytest.approx(0.030 / np.sqrt(3)) and d.range_offset_distribution == "rectangular"
+    for bad, key in (
+        ("[scanner.errors]\nrange_offset_u_m = -0.01", "scanner.errors.range_offset_u_m"),
+        ("[motor.errors]\ntiming_jitter_u_s = -1e-3", "motor.errors.timing_jitter_u_s"),
+        ("[scanner.errors]\nrange_offset_distribution = 'triangular'", "scanner.errors.range_offset_distribution"),
+        ("[fit]\ncoverage_factor = 0", "fit.coverage_factor"),
+    ):
+        with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+            parse_toml(REAL + bad)
+
+
 def test_missing_file(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="cannot read config"):
         load_config(tmp_path / "nope.toml")

@@ -55,6 +55,17 @@ def _check_cylinder(result: dict[str, Any], gum: bool = True) -> None:
         assert abs(result["diameter_m"] - TRUTH_D) <= 4 * u["std_m"], result  # the GUM standard uncertainty
     assert abs(result["diameter_m"] - TRUTH_D) < 2e-3
     assert np.allclose(result["axis_point_m"][:2], [0.28, 2.53], atol=5e-3)
+    # the GUM budget (lrms.budget): one row per source, in quadrature, U = 2 u_c, the truth inside +-U
+    rows = u["budget"]
+    assert rows[0]["source"] == "fit (type A)" and rows[0]["type"] == "A" and rows[0]["u_m"] == u["std_m"]
+    for r in rows:
+        assert set(r) == {"source", "type", "u_x", "unit", "c", "u_m", "distribution", "note"}
+        assert r["u_m"] == pytest.approx(abs(r["c"]) * r["u_x"], rel=1e-9, abs=1e-15)
+    assert {"range offset", "alpha zero", "motor timing jitter", "motor encoder"} <= {r["source"] for r in rows}
+    assert u["combined_m"] == pytest.approx(float(np.sqrt(sum(r["u_m"] ** 2 for r in rows))), rel=1e-12)
+    assert u["k"] == 2.0 and u["expanded_m"] == pytest.approx(2 * u["combined_m"], rel=1e-12)
+    assert u["critical_point"]["k"] == 3.0
+    assert abs(result["diameter_m"] - TRUTH_D) <= u["expanded_m"]
     assert abs(result["axis_direction"][2]) > 0.999
 
 

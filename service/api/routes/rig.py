@@ -31,7 +31,7 @@ def _static(service: Service) -> dict[str, Any]:
         "noise": cfg.noise.model_dump(mode="json"),
         "sweep_defaults": cfg.sweep.model_dump(mode="json"),
         "fit_defaults": cfg.fit.model_dump(mode="json"),
-        "motor_limits": cfg.motor.model_dump(mode="json", exclude={"url"}),
+        "motor_limits": cfg.motor.model_dump(mode="json", exclude={"url", "errors"}),
         "min_schedule_interval_s": cfg.schedules.min_interval_s,
         "sim": cfg.sim.model_dump(mode="json") if cfg.sim is not None else None,
     }
