@@ -30,7 +30,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sim.scene.scene import Scene
-from sim.scene.sensor import SIGMA_ALPHA_SEED003, SIGMA_BETA_SEED003, Echoes, Sensor, SensorModel
+from sim.scene.sensor import (
+    SIGMA_ALPHA_SEED003,
+    SIGMA_BETA_SEED003,
+    Echoes,
+    Sensor,
+    SensorModel,
+    gaussian_angle_noise,
+)
 from sim.scene.shapes import FloatArray, SceneError
 
 #: LMS1xx light spot at the front screen (m): operating instructions 8012471, section 3.6.2.
@@ -247,9 +254,7 @@ class LMS1xxSensor:
     # ------------------------------------------------------------------ Sensor protocol
     def angle_noise(self, shape: tuple[int, ...], rng: np.random.Generator | None) -> tuple[FloatArray, FloatArray]:
         """Draws of (d_alpha, d_beta) for ``shape`` samples (zeros without ``rng``)."""
-        if rng is None:
-            return np.zeros(shape), np.zeros(shape)
-        return rng.normal(0.0, self.sigma_alpha, shape), rng.normal(0.0, self.sigma_beta, shape)
+        return gaussian_angle_noise(self.sigma_alpha, self.sigma_beta, shape, rng)
 
     def echoes(
         self,

@@ -65,6 +65,16 @@ class Echoes:
     rssi2: FloatArray | None = None
 
 
+def gaussian_angle_noise(
+    sigma_alpha: float, sigma_beta: float, shape: tuple[int, ...], rng: np.random.Generator | None
+) -> tuple[FloatArray, FloatArray]:
+    """Independent normal draws of (d_alpha, d_beta) for ``shape`` beams (zeros without ``rng``):
+    the angle noise of every sensor model here (the same draws in the same order)."""
+    if rng is None:
+        return np.zeros(shape), np.zeros(shape)
+    return rng.normal(0.0, sigma_alpha, shape), rng.normal(0.0, sigma_beta, shape)
+
+
 class Sensor(Protocol):
     """A sensor model: angle noise of the fired beams, and the echoes of rays in a scene.
 
@@ -116,9 +126,7 @@ class SensorModel:
 
     def angle_noise(self, shape: tuple[int, ...], rng: np.random.Generator | None) -> tuple[FloatArray, FloatArray]:
         """Draws of (d_alpha, d_beta) for ``shape`` samples (zeros without ``rng``)."""
-        if rng is None:
-            return np.zeros(shape), np.zeros(shape)
-        return rng.normal(0.0, self.sigma_alpha, shape), rng.normal(0.0, self.sigma_beta, shape)
+        return gaussian_angle_noise(self.sigma_alpha, self.sigma_beta, shape, rng)
 
     def measure(
         self,
