@@ -599,18 +599,7 @@ def cylinder_budget(
 
 #: Rows whose inputs the Monte Carlo replicas draw on the beams themselves (the others, given as a
 #: diameter contribution, are drawn as a normal error of the replica's diameter).
-BEAM_SOURCES = (
-    "fit (type A)",
-    "range offset",
-    "range scale",
-    "temperature drift",
-    "alpha zero",
-    "alpha noise",
-    "beta noise",
-    "beta zero",
-    "motor timing jitter",
-    "motor encoder",
-)
+BEAM_SOURCES = tuple(s for s in SOURCES if s != "footprint / edge model")
 
 
 def _draw(dist: str, u: float, shape: tuple[int, ...], rng: np.random.Generator) -> FloatArray:
