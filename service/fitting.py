@@ -12,6 +12,7 @@ Positions in the result are in the world frame (``world_from_rig`` of the calibr
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
@@ -288,12 +289,23 @@ def fit_cylinder_result(
         world_from_rig=cal.world_from_rig,
         optics=optics_for(config),
         diameter_range=_diameter_range(request),
-        errors=config.sensor_errors(),
+        errors=sweep_errors(config, mapped),
         beams=beams,
         coverage_factor=config.fit.coverage_factor,
     )
     result["fit_seed"] = seed
     return result
+
+
+def sweep_errors(config: RigConfig, mapped: MappedSweep) -> SensorErrors:
+    """The budget's type-B inputs of one sweep: ``[scanner.errors]`` and ``[motor.errors]``, with the
+    motor timing jitter raised to what the sweep's own motor samples show when that is larger
+    (:func:`service.sweep.motor_timing_jitter`: a busy host or link makes it so)."""
+    err = config.sensor_errors()
+    measured = mapped.motor_timing_jitter_s
+    if measured is not None and np.isfinite(measured) and measured > err.timing_jitter_u_s:
+        err = dataclasses.replace(err, timing_jitter_u_s=float(measured))
+    return err
 
 
 def _diameter_range(request: MeasurementRequest) -> tuple[float, float] | None:

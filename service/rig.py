@@ -219,6 +219,7 @@ def sweep_info(recorder: SweepRecorder, mapped: MappedSweep, sweep: ResolvedSwee
             "scan_gaps": [list(g) for g in recorder.gaps.gaps[:100]],
             "scans_in_sweep": int(np.unique(mapped.scan_index).size),
             "motor_samples": len(recorder.motor),
+            "motor_timing_jitter_s": mapped.motor_timing_jitter_s,
         },
         "mapping": mapped.stats(),
         "clock": {

@@ -175,6 +175,45 @@ def interpolate_angle(t: ArrayLike, sample_t: ArrayLike, sample_angle: ArrayLike
     return out
 
 
+def motor_timing_jitter(
+    t_s: ArrayLike,
+    angle: ArrayLike,
+    window: tuple[float, float] | None,
+    span_s: tuple[float, float] | None = None,
+    min_samples: int = 20,
+) -> float | None:
+    """The scatter (s) of the motor samples' time stamps about a constant-speed motion, measured.
+
+    A sample's time stamp is the host time of the SYNC it answers; the drive latched its
+    position when the SYNC reached it. Any delay between the two that varies from sample to
+    sample (a busy host, a queue on the link) shows as scatter of angle about the straight line
+    of a constant-speed sweep, ``delta_angle = speed x delta_t``. The samples whose angle lies
+    inside ``window`` (motor rad, the constant-velocity part) and, given, inside the time span ``span_s``
+    (that of the sweep's beams: the approach may cross the window too) are fitted with a quadratic in time
+    (a slow change of speed is motion, not jitter) and the residuals' standard deviation over
+    the fitted speed is returned. A real velocity ripple counts here too, which errs on the
+    safe side. ``None`` when there is no such part (step-and-scan, under ``min_samples``, at rest).
+    """
+    if window is None:
+        return None
+    t = np.asarray(t_s, dtype=np.float64)
+    a = np.asarray(angle, dtype=np.float64)
+    lo, hi = sorted(window)
+    inside = np.isfinite(a) & (a >= lo) & (a <= hi)
+    if span_s is not None:
+        inside &= (t >= span_s[0]) & (t <= span_s[1])
+    if np.count_nonzero(inside) < max(min_samples, 4):
+        return None
+    tt, aa = t[inside], a[inside]
+    tc = tt - tt.mean()
+    coef = np.polynomial.polynomial.polyfit(tc, aa, 2)
+    speed = abs(float(coef[1]))
+    if speed < 1e-6:  # rad/s: at rest, no timing can be read from the angle
+        return None
+    resid = aa - np.polynomial.polynomial.polyval(tc, coef)
+    return float(np.std(resid, ddof=3) / speed)
+
+
 @dataclass(frozen=True)
 class MappedSweep:
     """The mapped samples of a sweep (valid beams only), all arrays of length K."""
@@ -191,6 +230,8 @@ class MappedSweep:
     beams_out_of_range: int
     beams_without_motor: int
     beams_outside_sweep: int
+    #: the motor samples' timing scatter in the sweep, measured (:func:`motor_timing_jitter`); None: not measurable
+    motor_timing_jitter_s: float | None = None
 
     @property
     def rig_points(self) -> FloatArray:
@@ -274,6 +315,14 @@ def map_sweep(
         beams_out_of_range=int(out_of_range.sum()),
         beams_without_motor=int(no_motor.sum()),
         beams_outside_sweep=int(outside.sum()),
+        motor_timing_jitter_s=motor_timing_jitter(
+            motor_rel,
+            ma,
+            None
+            if beta_window is None
+            else (float(calibration.motor_angle(beta_window[0])), float(calibration.motor_angle(beta_window[1]))),
+            (float(host_rel[keep].min()), float(host_rel[keep].max())) if np.any(keep) else None,
+        ),
     )
 
 

@@ -138,3 +138,23 @@ def test_motor_samples_are_added_as_one_batch() -> None:
     assert t.tolist() == [1, 2, 3, 5] and p.tolist() == [0.1, 0.2, 0.3, 0.5]
     with pytest.raises(ValueError, match="differ in length"):
         track.extend([1, 2], [0.1], [0.0, 0.0])
+
+
+def test_motor_timing_jitter_reads_the_time_stamps_scatter_from_a_constant_speed_sweep() -> None:
+    from service.sweep import motor_timing_jitter
+
+    rng = np.random.default_rng(3)
+    t_sync = np.arange(0.0, 5.0, 0.005)  # 200 Hz SYNC times
+    speed = np.deg2rad(20.0)
+    for sigma in (0.0002, 0.002):
+        latch = t_sync + 0.004 + rng.normal(0.0, sigma, t_sync.size)  # drive latches late, by a varying delay
+        angle = -0.5 + speed * latch  # constant speed
+        est = motor_timing_jitter(t_sync, angle, (-0.45, 1.0), (0.2, 4.8))
+        assert est is not None and est == pytest.approx(sigma, rel=0.1)
+    # the approach crossing the window before the sweep is left out by the time span
+    angle = np.where(t_sync < 1.0, 0.3 - speed * t_sync, speed * (t_sync - 1.0) - 0.1)
+    assert motor_timing_jitter(t_sync, angle, (-0.05, 1.0), (1.5, 4.8)) == pytest.approx(0.0, abs=1e-9)
+    # at rest, or without a window (step-and-scan), or too few samples: nothing to read
+    assert motor_timing_jitter(t_sync, np.zeros_like(t_sync), (-1.0, 1.0)) is None
+    assert motor_timing_jitter(t_sync, speed * t_sync, None) is None
+    assert motor_timing_jitter(t_sync[:10], speed * t_sync[:10], (-1.0, 1.0)) is None
