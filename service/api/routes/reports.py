@@ -39,7 +39,7 @@ def _reportable(service: ServiceDep, mid: str) -> Measurement:
 
 @router.get(
     "/{mid}/report.html",
-    response_class=HTMLResponse,
+    response_class=Response,  # not HTMLResponse: its media type would be given to the JSON error bodies
     responses={200: {"content": {"text/html": {}}}, **_REPORT_RESPONSES},
 )
 def get_report_html(mid: MeasurementId, service: ServiceDep) -> HTMLResponse:
