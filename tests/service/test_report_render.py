@@ -8,6 +8,7 @@ import hashlib
 import html as htmllib
 import io
 import re
+import time
 from pathlib import Path
 from typing import Any
 
@@ -211,3 +212,43 @@ def test_pdf_loads_nothing_from_outside() -> None:
     (WeasyPrint's fetcher refuses the URL, fatally: a report is never silently incomplete)."""
     with pytest.raises(ServiceError, match=re.escape("disallowed protocol: http://127.0.0.1:9/x.png")):
         html_to_pdf('<html><body><img src="http://127.0.0.1:9/x.png"></body></html>')
+
+
+def test_failed_measurement_report_over_http_needs_a_read_token(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A measurement that fails has a report saying so (HTML and PDF); reads need the token when
+    ``[auth] read = "token"``; the engineer's page itself is open."""
+    import httpx
+
+    from service.api import ServerThread, Service, create_app
+    from service.config import TOKEN_ENV, TOKEN_ENVS
+    from service.jobs import JobContext
+
+    for var in (TOKEN_ENV, *TOKEN_ENVS.values()):
+        monkeypatch.delenv(var, raising=False)
+
+    def measure(ctx: JobContext) -> dict[str, Any]:
+        raise ServiceError("scanner link lost during the sweep")
+
+    toml = f"[sim]\n[storage]\ndir = '{tmp_path}'\n[auth]\nread = 'token'\noperator_token = 'op'\nread_token = 'rd'\n"
+    svc = Service(parse_toml(toml), measure)
+    with ServerThread(create_app(svc)) as srv, httpx.Client(base_url=srv.url, timeout=60) as c:
+        mid = c.post("/api/v1/measurements", json={"target": "cylinder"}, headers={"Authorization": "Bearer op"})
+        mid = mid.json()["id"]
+        end = time.monotonic() + 20
+        while c.get(f"/api/v1/measurements/{mid}", headers={"Authorization": "Bearer rd"}).json()["state"] != "failed":
+            assert time.monotonic() < end
+            time.sleep(0.02)
+        assert c.get(f"/api/v1/measurements/{mid}/report.html").status_code == 401
+        r = c.get(f"/api/v1/measurements/{mid}/report.html", headers={"Authorization": "Bearer rd"})
+        assert r.status_code == 200
+        text = text_of(r.text)
+        assert "The measurement failed; it has no valid result." in text
+        assert "scanner link lost during the sweep" in text
+        r = c.get(f"/api/v1/measurements/{mid}/report.pdf", headers={"Authorization": "Bearer rd"})
+        assert r.status_code == 200 and r.content.startswith(b"%PDF-")
+        page = c.get("/")
+        assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
+        assert '<script src="/ui/app.js"' in page.text
+        assert "fetch(" in c.get("/ui/app.js").text and c.get("/ui/style.css").status_code == 200
