@@ -225,4 +225,3 @@ def _record(row: Any) -> StoredCalibration:
         active=bool(row.active),
         calibration=CalibrationResult.from_json(row.result),
     )
-

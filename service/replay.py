@@ -19,9 +19,9 @@ from numpy.typing import NDArray
 from drivers.lms100.errors import CoLaError
 from drivers.lms100.messages import ScanDataEvent, ScanDataReply
 from drivers.lms100.protocol import CoLaConnection
+from lrms.kinematics import RigModel
 from service import mcaplog, mcaprecovery
 from service.config import RigConfig, parse_config
-from lrms.kinematics import RigModel
 from service.errors import ServiceError
 from service.fitting import rig_kinematics
 from service.models import MeasurementRequest, ResolvedSweep
@@ -107,9 +107,7 @@ def load_log(path: str | Path) -> LoadedLog:
     if t_start is None:
         raise ReplayError(f"{path}: the sweep never started (log ends before the sweep_start event)")
     cfg = parse_config(meta["config"], source=f"{path} (logged configuration)")
-    return LoadedLog(
-        meta, cfg, logged_calibration(meta, path), recorder, t_start, t_end, stored, status.truncated, bad
-    )
+    return LoadedLog(meta, cfg, logged_calibration(meta, path), recorder, t_start, t_end, stored, status.truncated, bad)
 
 
 def replay(path: str | Path) -> dict[str, Any]:

@@ -451,9 +451,8 @@ class Rig:
         log_ = recorder.log
         recorder.log = None  # the MCAP writer (a thread) stays here; the sweep no longer logs through it
         try:
-            return self._fit_pool.submit(
-                finish_measurement, recorder, self.config, req, sweep, t0, t1, calibration
-            ).result()  # type: ignore[no-any-return]
+            job = self._fit_pool.submit(finish_measurement, recorder, self.config, req, sweep, t0, t1, calibration)
+            return job.result()  # type: ignore[no-any-return]
         except BrokenProcessPool as exc:
             self._fit_pool = None
             raise ServiceError(f"the fit process died: {exc}") from None
@@ -559,9 +558,7 @@ class Rig:
             ctx.info["scans"] = {"received": recorder.gaps.received, "missing": recorder.gaps.missing}
             ctx.progress(0.86, "mapping")
             try:
-                mapped, result = self._finish(
-                    recorder, req, sweep, outcome.t_start_ns, outcome.t_end_ns, calibration
-                )
+                mapped, result = self._finish(recorder, req, sweep, outcome.t_start_ns, outcome.t_end_ns, calibration)
             except (FitError, SweepError) as exc:
                 partial = getattr(exc, "partial_result", None)
                 if partial is not None:  # the sweep's counters, so a failed fit still says what was measured

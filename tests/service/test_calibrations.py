@@ -209,14 +209,17 @@ def test_measurements_on_a_miscalibrated_rig_use_the_active_calibration(
     from service.rig import build_service
 
     monkeypatch.delenv(TOKEN_ENV, raising=False)
-    cfg = _config(tmp_path, f"process = false\nrig_errors = {RIG_ERRORS}")
-    svc, rig = build_service(cfg, isolate=False)
+    cfg = _config(tmp_path, f"rig_errors = {RIG_ERRORS}")
+    svc, rig = build_service(cfg)  # the rig in its own process, as `lrms serve` runs it
     req = {"target": "cylinder", "sweep": {"speed_deg_s": 20.0}}
     try:
         with ServerThread(create_app(svc)) as srv, httpx.Client(base_url=srv.url, timeout=30.0) as client:
             before = _wait(client, client.post("/api/v1/measurements", json=req, headers=OP).json()["id"])
             cal = client.post(
-                "/api/v1/calibrations", params={"name": "truth", "activate": "true"}, content=CAL.to_json(), headers=AUTH
+                "/api/v1/calibrations",
+                params={"name": "truth", "activate": "true"},
+                content=CAL.to_json(),
+                headers=AUTH,
             ).json()
             after = _wait(client, client.post("/api/v1/measurements", json=req, headers=OP).json()["id"])
     finally:
@@ -246,3 +249,58 @@ def test_measurements_on_a_miscalibrated_rig_use_the_active_calibration(
     rep = replay(raw)
     assert rep["reproduced"], rep["max_abs_diff"]
     assert rep["result"]["calibration"] == a["calibration"]
+
+
+def test_calibrate_reads_a_raw_log_of_the_simulated_rig_and_uploads(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A -90..90 deg sweep of ``room-spheres`` by the miscalibrated simulated rig, recorded as the
+    service records any measurement (the cylinder fit finds no part there; the raw log stays);
+    ``lrms calibrate LOG.mcap`` recovers the true errors from the raw readings and ``--upload``
+    stores the calibration, active, in the service."""
+    from service.cli.main import main
+    from service.rig import build_service
+    from sim.scene.library import room_spheres_artefact
+
+    monkeypatch.delenv(TOKEN_ENV, raising=False)
+    cfg = _config(tmp_path, f"scene = 'room-spheres'\nrig_errors = {RIG_ERRORS}")
+    svc, rig = build_service(cfg)  # the rig in its own process, as `lrms serve` runs it
+    req = {"target": "cylinder", "sweep": {"start_deg": -90.0, "stop_deg": 90.0, "speed_deg_s": 20.0}}
+    art = tmp_path / "artefact.json"
+    art.write_text(json.dumps(room_spheres_artefact()))
+    try:
+        with ServerThread(create_app(svc)) as srv, httpx.Client(base_url=srv.url, timeout=30.0) as client:
+            m = _wait(client, client.post("/api/v1/measurements", json=req, headers=OP).json()["id"])
+            assert m["has_raw"], m
+            raw = tmp_path / "room.mcap"
+            raw.write_bytes(client.get(f"/api/v1/measurements/{m['id']}/raw").content)
+            code = main(
+                ["calibrate", str(raw), "--artefact", str(art), "--json", "--upload", srv.url, "--token", ADMIN,
+                 "--name", "room", "--activate"]
+            )  # fmt: skip
+            assert code == 0
+            out = capsys.readouterr()
+            active = client.get("/api/v1/calibrations/active").json()
+    finally:
+        svc.stop()
+        rig.close()
+    printed = json.loads(out.out)
+    assert printed["sources"] == [str(raw)]
+    std = printed["std"]
+    for name, true in (("k0", TRUE_RIG.k0), ("tilt_x", TRUE_RIG.tilt_x), ("alpha_zero", TRUE_RIG.alpha_zero)):
+        assert abs(printed["model"][name] - true) <= 3 * std[name], (name, printed["model"][name], std[name])
+    assert f"calibration stored as {active['id']} (active)" in out.err
+    assert active["name"] == "room" and active["calibration"]["model"] == printed["model"]
+
+
+def test_calibrate_upload_refused_is_a_clear_error(served: tuple[httpx.Client, Service], tmp_path: Path) -> None:
+    from service.cli.calibrate import upload
+    from service.errors import ServiceError
+
+    client, _ = served
+    with pytest.raises(ServiceError, match=r"refused the calibration \(403\)"):
+        upload(CAL.to_json(), str(client.base_url), OPERATOR, "x", "", False)
+    with pytest.raises(ServiceError, match=r"refused the calibration \(422\).*not a calibration"):
+        upload("{}", str(client.base_url), ADMIN, "x", "", False)
+    stored = upload(CAL.to_json(), f"{client.base_url}/api/v1/calibrations", ADMIN, "x", "", True)
+    assert stored["active"] and client.get("/api/v1/calibrations").json()[0]["id"] == stored["id"]

@@ -80,9 +80,7 @@ RigId = Annotated[
 def create_calibration(
     response: Response,
     service: ServiceDep,
-    body: Annotated[
-        dict[str, Any], Body(description="a calibration as `lrms calibrate --json` prints it (schema lrms.calibration/1)")
-    ],
+    body: Annotated[dict[str, Any], Body(description="a calibration as `lrms calibrate --json` prints it")],
     name: Annotated[str, Query(max_length=NAME_MAX_LENGTH)] = "",
     comment: Annotated[str, Query(max_length=COMMENT_MAX_LENGTH)] = "",
     rig_id: RigId = None,
