@@ -234,7 +234,7 @@ def test_measurements_on_a_miscalibrated_rig_use_the_active_calibration(
     # the fit's own noise (u ~ 0.5 mm at 20 deg/s) dominates the calibrated result: within 3 u_c
     assert abs(a["diameter_m"] - truth) <= 3 * a["uncertainty"]["combined_m"]
     tilt = [np.rad2deg(np.arccos(abs(r["axis_direction"][2]))) for r in (b, a)]
-    assert tilt[0] > 0.5 and tilt[1] < 0.1
+    assert tilt[0] > 1.0 and tilt[1] < 0.4, tilt  # 1.4 deg before; after: the fit's noise (0.015, 0.12 deg seen)
     rows_b = {r["source"]: r for r in b["uncertainty"]["budget"]}
     rows_a = {r["source"]: r for r in a["uncertainty"]["budget"]}
     assert "calibration" not in rows_b and "range offset" in rows_b and "alpha zero" in rows_b
