@@ -13,7 +13,8 @@ Positions in the result are in the world frame (``world_from_rig`` of the calibr
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -26,7 +27,12 @@ from service.config import DEFAULT_K, RigConfig
 from service.models import MeasurementRequest, resolve_sweep
 from service.sweep import MappedSweep, roi_mask
 
+if TYPE_CHECKING:
+    from service.calstore import StoredCalibration
+
 FloatArray = NDArray[np.float64]
+#: A calibration's budget row, built once the fit is known: ``(fit, inlier rays) -> row``.
+CalibrationRow = Callable[[Any, Any], CalibrationInput | None]
 
 #: Points farther than this many robust standard deviations from the fitted elbow are trimmed.
 ELBOW_TRIM = 4.0
@@ -51,18 +57,35 @@ def select(mapped: MappedSweep, request: MeasurementRequest, config: RigConfig) 
     return roi_mask(mapped.points, lo, hi)
 
 
-def fit(mapped: MappedSweep, request: MeasurementRequest, config: RigConfig) -> dict[str, Any]:
-    """The fit result as JSON-ready data (raises :class:`FitError` if the model is not found)."""
+def fit(
+    mapped: MappedSweep,
+    request: MeasurementRequest,
+    config: RigConfig,
+    calibration: StoredCalibration | None = None,
+) -> dict[str, Any]:
+    """The fit result as JSON-ready data (raises :class:`FitError` if the model is not found).
+
+    ``calibration``: the rig's active calibration (:mod:`service.calstore`); ``mapped`` was mapped
+    with it (:func:`rig_kinematics`), the cylinder's beams are its rig model's,
+    its covariance is a row of the budget, and ``result["calibration"]`` names it
+    (``{"id", "name", "created"}``; ``None``: the rig's ``[kinematics]`` as configured)."""
     keep = select(mapped, request, config)
     n_roi = int(np.count_nonzero(keep))
     if n_roi == 0:
         raise FitError("no points inside the region of interest")
     if request.target == "cylinder":
-        out = fit_cylinder_result(mapped, keep, request, config)
+        out = fit_cylinder_result(mapped, keep, request, config, calibration)
     else:
-        out = fit_elbow_result(mapped, keep, request, config)
+        out = fit_elbow_result(mapped, keep, request, config, calibration)
     out["points_in_roi"] = n_roi
+    out["calibration"] = None if calibration is None else calibration.reference()
     return out
+
+
+def rig_kinematics(config: RigConfig, calibration: StoredCalibration | None) -> kinematics.RigCalibration:
+    """The rig's ``[kinematics]`` with the active calibration's rig model in place of its own."""
+    base = config.calibration
+    return base if calibration is None else base.with_model(calibration.calibration.model)
 
 
 def _vec(v: Any) -> list[float]:
@@ -85,7 +108,7 @@ def cylinder_result(
     errors: SensorErrors | None = None,
     beams: BeamGeometry | None = None,
     coverage_factor: float = 2.0,
-    calibration: CalibrationInput | None = None,
+    calibration: CalibrationInput | CalibrationRow | None = None,
 ) -> tuple[dict[str, Any], Any, Any]:
     """Cylinder fit, its three intervals and the JSON result: the one implementation behind the
     service's cylinder measurements and ``lrms fit --model cylinder``.
@@ -101,7 +124,8 @@ def cylinder_result(
     inputs (default :class:`lrms.budget.SensorErrors`: an uncalibrated LMS1xx); ``beams``: every
     point's scan and motor angle, scan index and the motor speed (default: the angles recovered
     from the points, scans from beta, 10 deg/s); ``coverage_factor``: k of ``U = k u_c``;
-    ``calibration``: a calibration's row (:class:`lrms.budget.CalibrationInput`).
+    ``calibration``: a calibration's row (:class:`lrms.budget.CalibrationInput`), or a function
+    giving it from the fit and its inlier rays (:data:`CalibrationRow`; line-of-sight fits only).
 
     Returns ``(result, fit, critical_point_interval)``. Result keys: ``model``, ``n_points``,
     ``n_inliers``, ``diameter_m``, ``radius_m``, ``axis_point_m``, ``axis_direction``, ``rmse_m``,
@@ -150,13 +174,18 @@ def cylinder_result(
             _, al, be = kinematics.inverse(pts, p)
             beams = BeamGeometry(al, be, p, float(np.deg2rad(DEFAULT_SWEEP_SPEED_DEG_S)))
         inlier_beams = beams.subset(fit.inliers)
+    cal_row: CalibrationInput | None = None
+    if isinstance(calibration, CalibrationInput):
+        cal_row = calibration
+    elif calibration is not None and line_of_sight:
+        cal_row = calibration(fit, inlier_rays)
     budget = cylinder_budget(
         fit,
         inlier_rays if line_of_sight else None,
         inlier_beams,
         errors=err,
         noise=noise,
-        calibration=calibration,
+        calibration=cal_row,
         k=coverage_factor,
     )
     mc: dict[str, Any] | None = None
@@ -254,30 +283,50 @@ def optics_for(config: RigConfig) -> Any:
 
 
 def fit_cylinder_result(
-    mapped: MappedSweep, keep: NDArray[np.bool_], request: MeasurementRequest, config: RigConfig
+    mapped: MappedSweep,
+    keep: NDArray[np.bool_],
+    request: MeasurementRequest,
+    config: RigConfig,
+    calibration: StoredCalibration | None = None,
 ) -> dict[str, Any]:
-    """The cylinder of a measurement: :func:`cylinder_result` with every point's own beam."""
+    """The cylinder of a measurement: :func:`cylinder_result` with every point's own beam (the
+    active calibration's rig model: its beams and geometric ranges, its covariance as a budget row)."""
     from lrms.cylinder import Rays
 
-    cal = config.calibration
+    cal = rig_kinematics(config, calibration)
+    rig = cal.rig
     nm = noise_model(config)
     l = mapped.ranges[keep]
     alpha = mapped.alpha[keep]
     beta = mapped.beta[keep]
-    origins, dirs = kinematics.beam_rays(alpha, beta, cal.p)
+    sweep = resolve_sweep(request.sweep, config)
+    speed = 0.0 if sweep.mode == "step" else float(np.deg2rad(sweep.speed_deg_s))  # step-and-scan: at rest
+    # the motor speed of every beam (the model's backlash and time-offset terms): the sweep's, signed
+    omega = np.full(l.shape, speed * (1.0 if sweep.stop_deg >= sweep.start_deg else -1.0))
+    origins, dirs = rig.rays(alpha, beta, omega)
     lateral = np.hypot(l * nm.sigma_alpha, (l * np.sin(alpha) + cal.p) * nm.sigma_beta)
     rays = Rays(
         origins=origins,
         dirs=dirs,
-        ranges=l,
+        ranges=rig.geometric_range(l),
         sigma_l=np.full(l.shape, nm.sigma_l),
         sigma_perp=np.maximum(lateral, 1e-7),
     )
     seed = request.options.seed if request.options.seed is not None else 0
     k = request.options.k if request.options.k is not None else config.fit.k
-    sweep = resolve_sweep(request.sweep, config)
-    speed = 0.0 if sweep.mode == "step" else float(np.deg2rad(sweep.speed_deg_s))  # step-and-scan: at rest
     beams = BeamGeometry(alpha, beta, cal.p, speed, mapped.scan_index[keep])
+    cal_row: CalibrationRow | None = None
+    if calibration is not None:
+        stored = calibration
+
+        def cal_row(fit: Any, inlier_rays: Any) -> CalibrationInput | None:
+            from lrms.calibration.budget import calibration_input
+
+            i = fit.inliers
+            return calibration_input(
+                stored.calibration, fit, inlier_rays, l[i], alpha[i], beta[i], omega[i], stored.name or stored.id
+            )
+
     result, _, _ = cylinder_result(
         rays.points(),
         rays=rays,
@@ -292,6 +341,7 @@ def fit_cylinder_result(
         errors=sweep_errors(config, mapped),
         beams=beams,
         coverage_factor=config.fit.coverage_factor,
+        calibration=cal_row,
     )
     result["fit_seed"] = seed
     return result
@@ -318,7 +368,11 @@ def _diameter_range(request: MeasurementRequest) -> tuple[float, float] | None:
 
 
 def fit_elbow_result(
-    mapped: MappedSweep, keep: NDArray[np.bool_], request: MeasurementRequest, config: RigConfig
+    mapped: MappedSweep,
+    keep: NDArray[np.bool_],
+    request: MeasurementRequest,
+    config: RigConfig,
+    calibration: StoredCalibration | None = None,
 ) -> dict[str, Any]:
     """The elbow (seed 000) fitted to the ROI's points (world frame) by :func:`lrms.elbow.fit_auto`.
 
@@ -333,7 +387,7 @@ def fit_elbow_result(
     from lrms.covariance import point_covariances
     from lrms.elbow import fit_auto
 
-    cal = config.calibration
+    cal = rig_kinematics(config, calibration)
     pts = mapped.points[keep]
     cov = point_covariances(mapped.ranges[keep], mapped.alpha[keep], mapped.beta[keep], noise_model(config), cal.p)
     variance = np.trace(cov, axis1=-2, axis2=-1) / 3.0  # invariant under the rotation to the world frame

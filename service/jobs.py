@@ -145,6 +145,9 @@ class JobContext:
     report: Callable[[float, str], None]
     metrics: Metrics | None = None
     info: dict[str, Any] = field(default_factory=dict)
+    calibration: dict[str, Any] | None = None
+    """The rig's active calibration (:meth:`service.calstore.StoredCalibration.payload`), set by
+    the service when the measurement starts; None: the rig's ``[kinematics]`` as configured."""
 
     def progress(self, fraction: float, message: str) -> None:
         self.report(fraction, message)

@@ -9,28 +9,57 @@ the service rebuilt from such a file on restart (``recovered`` gives its recover
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
 
 from drivers.lms100.errors import CoLaError
 from drivers.lms100.messages import ScanDataEvent, ScanDataReply
 from drivers.lms100.protocol import CoLaConnection
+from lrms.kinematics import RigModel
 from service import mcaplog, mcaprecovery
-from service.config import parse_config
+from service.config import RigConfig, parse_config
 from service.errors import ServiceError
+from service.fitting import rig_kinematics
 from service.models import MeasurementRequest, ResolvedSweep
 from service.sweep import SweepRecorder
+
+if TYPE_CHECKING:
+    from service.calstore import StoredCalibration
+
+FloatArray = NDArray[np.float64]
 
 
 class ReplayError(ServiceError):
     pass
 
 
-def replay(path: str | Path) -> dict[str, Any]:
-    """Replay ``path``; returns ``{"result", "stored", "truncated", "recovered", "bad_telegrams",
-    "reproduced", "max_abs_diff"}`` (``recovered``: the recovery record of a log rebuilt on restart)."""
-    from service.rig import finish_measurement
+@dataclass
+class LoadedLog:
+    """A measurement's raw log read back: its record, the recorder fed with every logged scan and
+    motor sample (mapping with the kinematics the measurement used), the sweep's start and end."""
 
+    meta: dict[str, Any]
+    config: RigConfig
+    calibration: StoredCalibration | None
+    recorder: SweepRecorder
+    t_start: int
+    t_end: int | None
+    stored: dict[str, Any] | None
+    truncated: bool
+    bad_telegrams: int
+
+    @property
+    def sweep(self) -> ResolvedSweep:
+        return ResolvedSweep.model_validate(self.meta["sweep"])
+
+
+def load_log(path: str | Path) -> LoadedLog:
+    """Read ``path`` into a :class:`LoadedLog` (:class:`ReplayError` if it is no measurement log
+    or its sweep never started)."""
     status = mcaplog.LogReadStatus()
     meta: dict[str, Any] | None = None
     stored: dict[str, Any] | None = None
@@ -43,7 +72,8 @@ def replay(path: str | Path) -> dict[str, Any]:
         if msg.topic == mcaplog.TOPIC_MEASUREMENT:
             meta = msg.decode()
             cfg = parse_config(meta["config"], source=f"{path} (logged configuration)")
-            recorder = SweepRecorder(cfg.calibration, None, meta["dialect"])
+            calibration = logged_calibration(meta, path)
+            recorder = SweepRecorder(rig_kinematics(cfg, calibration), None, meta["dialect"])
             codec = CoLaConnection(meta["dialect"], role="client")
         elif recorder is None or codec is None:
             continue
@@ -77,15 +107,26 @@ def replay(path: str | Path) -> dict[str, Any]:
     if t_start is None:
         raise ReplayError(f"{path}: the sweep never started (log ends before the sweep_start event)")
     cfg = parse_config(meta["config"], source=f"{path} (logged configuration)")
-    request = MeasurementRequest.model_validate(meta["request"])
-    sweep = ResolvedSweep.model_validate(meta["sweep"])
-    _, result = finish_measurement(recorder, cfg, request, sweep, t_start, t_end)
+    return LoadedLog(meta, cfg, logged_calibration(meta, path), recorder, t_start, t_end, stored, status.truncated, bad)
+
+
+def replay(path: str | Path) -> dict[str, Any]:
+    """Replay ``path``; returns ``{"result", "stored", "truncated", "recovered", "bad_telegrams",
+    "reproduced", "max_abs_diff"}`` (``recovered``: the recovery record of a log rebuilt on restart)."""
+    from service.rig import finish_measurement
+
+    log = load_log(path)
+    request = MeasurementRequest.model_validate(log.meta["request"])
+    _, result = finish_measurement(
+        log.recorder, log.config, request, log.sweep, log.t_start, log.t_end, log.calibration
+    )
     result = mcaplog.json_safe(result)
+    stored, bad = log.stored, log.bad_telegrams
     recovered = mcaprecovery.recovery_info(path)
     out: dict[str, Any] = {
         "result": result,
         "stored": stored,
-        "truncated": status.truncated or recovered is not None,
+        "truncated": log.truncated or recovered is not None,
         "recovered": recovered,
         "bad_telegrams": bad,
         "reproduced": None,
@@ -96,6 +137,61 @@ def replay(path: str | Path) -> dict[str, Any]:
         out["max_abs_diff"] = diff
         out["reproduced"] = diff is not None and diff <= 1e-9
     return out
+
+
+@dataclass(frozen=True)
+class LoggedReadings:
+    """The raw readings of a logged sweep's valid beams (inside the sweep's constant-speed window
+    and the fit's range limits): range ``l`` (m), scan angle ``alpha`` and plane angle ``beta``
+    (rad, the rig's device conventions applied), the motor speed ``omega`` at each beam (rad/s),
+    and the rig model the measurement mapped with."""
+
+    l: FloatArray
+    alpha: FloatArray
+    beta: FloatArray
+    omega: FloatArray
+    model: RigModel
+
+
+def log_readings(path: str | Path) -> LoggedReadings:
+    """The raw ``(l, alpha, beta, omega)`` of the sweep logged in ``path`` (a measurement's raw
+    MCAP log), for a calibration (``lrms calibrate``). The motor speed at a beam is the drive's
+    logged velocity interpolated at the beam's host time (where the drive logged none: the
+    derivative of the logged positions)."""
+    from service.rig import plan_from
+
+    log = load_log(path)
+    plan = plan_from(log.sweep)
+    window = plan.beta_window() if plan.mode == "constant" else None
+    cfg = log.config
+    mapped = log.recorder.map(log.t_start, log.t_end, window, cfg.fit.min_range_m, cfg.fit.max_range_m)
+    motor = log.recorder.motor
+    t = np.asarray(motor.t_ns, dtype=np.int64)
+    pos = np.asarray(motor.position, dtype=np.float64)
+    vel = np.asarray(motor.velocity, dtype=np.float64)
+    t, idx = np.unique(t, return_index=True)
+    pos, vel = pos[idx], vel[idx]
+    ts = (t - mapped.t_ref_ns) * 1e-9
+    if t.size < 2:
+        raise ReplayError(f"{path}: fewer than two motor samples")
+    if not np.all(np.isfinite(vel)):
+        vel = np.gradient(pos, ts)
+    omega = np.interp(mapped.beam_time_s, ts, vel)
+    return LoggedReadings(mapped.ranges, mapped.alpha, mapped.beta, omega, log.recorder.calibration.rig)
+
+
+def logged_calibration(meta: dict[str, Any], path: str | Path) -> StoredCalibration | None:
+    """The calibration the logged measurement used (its ``/lrms/measurement`` record), or None."""
+    from lrms.calibration import CalibrationError
+    from service.calstore import StoredCalibration
+
+    data = meta.get("calibration")
+    if data is None:
+        return None
+    try:
+        return StoredCalibration.from_payload(data)
+    except (CalibrationError, KeyError, TypeError) as exc:
+        raise ReplayError(f"{path}: the logged calibration cannot be read: {exc}") from None
 
 
 #: Result fields a replay cannot reproduce (wall time, the live client's counters, the id).

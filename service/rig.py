@@ -33,6 +33,7 @@ from drivers.url import open_device
 from lrms.errors import FitError
 from lrms.kinematics import RigCalibration
 from service import fitting, mcaplog
+from service.calstore import StoredCalibration
 from service.config import RigConfig
 from service.errors import ServiceError
 from service.jobs import Cancelled, JobContext
@@ -194,14 +195,17 @@ def finish_measurement(
     sweep: ResolvedSweep,
     t_start_ns: int,
     t_end_ns: int | None,
+    calibration: StoredCalibration | None = None,
 ) -> tuple[MappedSweep, dict[str, Any]]:
-    """Mapping and fit from recorded data: the same code live and in ``lrms replay``."""
+    """Mapping and fit from recorded data: the same code live and in ``lrms replay``. The
+    recorder maps with ``calibration``'s rig model when one is given (:func:`fitting.rig_kinematics`),
+    and the fit uses it (:func:`fitting.fit`)."""
     plan = plan_from(sweep)
     window = plan.beta_window() if plan.mode == "constant" else None
     mapped = recorder.map(t_start_ns, t_end_ns, window, config.fit.min_range_m, config.fit.max_range_m)
     info = sweep_info(recorder, mapped, sweep)
     try:
-        result = fitting.fit(mapped, request, config)
+        result = fitting.fit(mapped, request, config, calibration)
     except FitError as exc:
         err = FitError(f"{exc} ({mapped.points.shape[0]} points mapped)")
         err.partial_result = info  # type: ignore[attr-defined]
@@ -426,14 +430,20 @@ class Rig:
 
     # -- a measurement --------------------------------------------------------------------
     def _finish(
-        self, recorder: SweepRecorder, req: MeasurementRequest, sweep: ResolvedSweep, t0: int, t1: int | None
+        self,
+        recorder: SweepRecorder,
+        req: MeasurementRequest,
+        sweep: ResolvedSweep,
+        t0: int,
+        t1: int | None,
+        calibration: StoredCalibration | None = None,
     ) -> tuple[MappedSweep, dict[str, Any]]:
         """Mapping and fit (:func:`finish_measurement`). With ``fit_process`` in a worker process:
         the fit's numpy/scipy code holds the interpreter lock for up to ~0.3 s at a time (measured:
         docs/service.md), which would delay this process's heartbeat and SYNC threads; the worker
         has an interpreter of its own. The recorder goes there pickled, without its log."""
         if not self.fit_process:
-            return finish_measurement(recorder, self.config, req, sweep, t0, t1)
+            return finish_measurement(recorder, self.config, req, sweep, t0, t1, calibration)
         from concurrent.futures.process import BrokenProcessPool
 
         if self._fit_pool is None:
@@ -441,7 +451,8 @@ class Rig:
         log_ = recorder.log
         recorder.log = None  # the MCAP writer (a thread) stays here; the sweep no longer logs through it
         try:
-            return self._fit_pool.submit(finish_measurement, recorder, self.config, req, sweep, t0, t1).result()  # type: ignore[no-any-return]
+            job = self._fit_pool.submit(finish_measurement, recorder, self.config, req, sweep, t0, t1, calibration)
+            return job.result()  # type: ignore[no-any-return]
         except BrokenProcessPool as exc:
             self._fit_pool = None
             raise ServiceError(f"the fit process died: {exc}") from None
@@ -477,6 +488,7 @@ class Rig:
             raise SweepError(f"motor is faulted before the sweep: {fault.reason} (0x{fault.code:04X}); reset it first")
         plan = plan_from(sweep, min(APPROACH_SPEED_DEG_S, cfg.motor.max_velocity_deg_s))
         offset_ns = time.time_ns() - time.monotonic_ns()
+        calibration = None if ctx.calibration is None else StoredCalibration.from_payload(ctx.calibration)
 
         def clock_ns(t_monotonic: float) -> int:
             return round(t_monotonic * 1e9) + offset_ns
@@ -499,10 +511,11 @@ class Rig:
                     "redacted": list(SECRET_KEYS),
                     "dialect": dialect,
                     "time_base": "host CLOCK_MONOTONIC + epoch offset, ns",
+                    "calibration": None if calibration is None else calibration.payload(),
                 },
             )
             logf.log_world_pose(now_ns(), cfg.calibration.world_from_rig)
-            recorder = SweepRecorder(cfg.calibration, logf, dialect)
+            recorder = SweepRecorder(fitting.rig_kinematics(cfg, calibration), logf, dialect)
 
             def on_event(kind: str, data: dict[str, Any]) -> None:
                 logf.log_json(mcaplog.TOPIC_EVENT, now_ns(), {"kind": kind, **data})
@@ -545,7 +558,7 @@ class Rig:
             ctx.info["scans"] = {"received": recorder.gaps.received, "missing": recorder.gaps.missing}
             ctx.progress(0.86, "mapping")
             try:
-                mapped, result = self._finish(recorder, req, sweep, outcome.t_start_ns, outcome.t_end_ns)
+                mapped, result = self._finish(recorder, req, sweep, outcome.t_start_ns, outcome.t_end_ns, calibration)
             except (FitError, SweepError) as exc:
                 partial = getattr(exc, "partial_result", None)
                 if partial is not None:  # the sweep's counters, so a failed fit still says what was measured

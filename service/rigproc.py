@@ -75,6 +75,8 @@ class StartCmd:
     measurement: Measurement
     raw_path: str
     cloud_path: str
+    calibration: dict[str, Any] | None = None
+    """The active calibration's payload (:attr:`service.jobs.JobContext.calibration`)."""
 
 
 @dataclass(frozen=True)
@@ -245,6 +247,7 @@ class _Worker:
             cloud_path=Path(cmd.cloud_path),
             cancel_event=cancel,
             report=lambda f, msg: self.outbox.send(Progress(m.id, f, msg)),
+            calibration=cmd.calibration,
         )
         try:
             result = self.rig.measure(ctx)
@@ -579,7 +582,7 @@ class RigSupervisor:
                 raise RigProcessError(f"the rig process is down ({self.last_exit}); the measurement was not started")
             self._job = job
         try:
-            self._send(StartCmd(ctx.measurement, str(ctx.raw_path), str(ctx.cloud_path)))
+            self._send(StartCmd(ctx.measurement, str(ctx.raw_path), str(ctx.cloud_path), ctx.calibration))
             cancel_sent = False
             while True:
                 if ctx.cancelled and not cancel_sent:

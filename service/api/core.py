@@ -12,8 +12,9 @@ from typing import Any
 
 from fastapi.responses import JSONResponse
 
+from service.calstore import CalibrationStore, engine_for
 from service.config import RigConfig
-from service.jobs import JobRunner, MeasureFn, Metrics, ProgressHub
+from service.jobs import JobContext, JobRunner, MeasureFn, Metrics, ProgressHub
 from service.models import MeasurementRequest, planned_duration_s, resolve_sweep
 from service.scheduler import Scheduler
 from service.store import Store
@@ -87,11 +88,20 @@ class Service:
     ) -> None:
         self.config = config
         self.store = store or Store(config.storage.db_path)
+        self.calibrations = CalibrationStore(engine_for(self.store))
+        """Rig calibrations (``/api/v1/calibrations``); the active one of ``config.name`` is used by
+        every measurement."""
         self.metrics = Metrics()
         self.hub = ProgressHub()
+
+        def measure_calibrated(ctx: JobContext) -> dict[str, Any]:
+            active = self.calibrations.active(config.name)
+            ctx.calibration = None if active is None else active.payload()
+            return measure(ctx)
+
         self.runner = JobRunner(
             self.store,
-            measure,
+            measure_calibrated,
             config.storage.raw_dir,
             config.storage.cloud_dir,
             self.hub,

@@ -2,11 +2,15 @@
 
 Each CLOUD is an .xyz / .txt / .csv / .ply file from the rig at the origin, mapped with the
 nominal Eq. 1 (inner parameter ``--p``) and a sweep within beta = +-90 deg, as ``lrms fit`` reads
-it; its raw readings are recovered by inverting Eq. 1. ARTEFACT.json describes what the sweeps
+it (its raw readings are recovered by inverting Eq. 1), or a measurement's raw MCAP log (.mcap):
+its raw readings with the motor speed of every beam (what backlash and the time offset need),
+the log's rig model as the nominal one (:func:`service.replay.log_readings`). ARTEFACT.json describes what the sweeps
 saw: ``{"planes": true, "spheres": [{"diameter_m": 0.2}, ...], "distances_m": [{"a": 0, "b": 1,
 "distance_m": 1.0}]}``. Prints the parameters with their standard deviations and the
 identifiability report (or the whole result as JSON with ``--json``); ``--out`` writes the
-calibration file that ``lrms fit --calibration`` applies. See docs/calibration.md.
+calibration file that ``lrms fit --calibration`` applies; ``--upload URL`` posts it to a service
+(``POST /api/v1/calibrations``, the admin token from ``--token`` or ``$LRMS_ADMIN_TOKEN``). See
+docs/calibration.md.
 """
 
 from __future__ import annotations
@@ -21,12 +25,21 @@ HELP = "calibrate the rig from sweeps of a room and reference spheres (writes a 
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("clouds", nargs="+", metavar="CLOUD", help="calibration sweep cloud(s): .xyz/.txt/.csv/.ply")
+    parser.add_argument(
+        "clouds", nargs="+", metavar="CLOUD", help="calibration sweep(s): cloud .xyz/.txt/.csv/.ply or raw log .mcap"
+    )
     parser.add_argument("--artefact", required=True, metavar="ARTEFACT.json", help="planes, spheres, distances")
     parser.add_argument("--out", metavar="CAL.json", default=None, help="write the calibration here")
     parser.add_argument("--json", action="store_true", help="print the whole result as JSON")
     parser.add_argument("--p", type=float, default=0.1, help="nominal inner parameter p of the clouds' mapping, m")
     parser.add_argument("--sigma-l-mm", type=float, default=None, help="range noise (default 11.67 mm, seed 003)")
+    parser.add_argument(
+        "--upload", metavar="URL", default=None, help="post the calibration to this service (base URL or the endpoint)"
+    )
+    parser.add_argument("--token", default=None, help="admin token for --upload (default: $LRMS_ADMIN_TOKEN)")
+    parser.add_argument("--name", default="", help="name of the uploaded calibration")
+    parser.add_argument("--comment", default="", help="comment of the uploaded calibration")
+    parser.add_argument("--activate", action="store_true", help="make the uploaded calibration the rig's active one")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -47,19 +60,76 @@ def run(args: argparse.Namespace) -> int:
     if not (np.isfinite(args.p) and args.p >= 0):
         raise CalibrationError(f"--p must be a length >= 0, got {args.p}")
     sweeps = []
+    nominal: RigModel | None = None
     for name in args.clouds:
         if name.lower().endswith(".mcap"):
-            raise CalibrationError(f"{name}: MCAP raw logs are not read by lrms calibrate yet; export the cloud (.ply)")
-        sweeps.append(Observations.from_points(read_points(name), args.p, source=name))
+            from service.replay import log_readings
+
+            r = log_readings(name)
+            if nominal is not None and nominal != r.model:
+                raise CalibrationError(f"{name}: recorded with another rig model than the sweeps before it")
+            nominal = r.model
+            sweeps.append(Observations.from_raw(r.l, r.alpha, r.beta, r.omega, source=name))
+        else:
+            sweeps.append(Observations.from_points(read_points(name), args.p, source=name))
+    if nominal is None:
+        nominal = RigModel(p=args.p)
+    elif len(sweeps) > sum(n.lower().endswith(".mcap") for n in args.clouds) and not nominal.is_nominal(args.p):
+        raise CalibrationError(
+            "clouds (mapped with the nominal Eq. 1, --p) and raw logs recorded with another rig model cannot be mixed"
+        )
     noise = NoiseModel() if args.sigma_l_mm is None else NoiseModel(sigma_l=args.sigma_l_mm / 1e3)
-    result = calibrate(sweeps, artefact, nominal=RigModel(p=args.p), noise=noise)
+    result = calibrate(sweeps, artefact, nominal=nominal, noise=noise)
     if args.out:
         Path(args.out).write_text(result.to_json() + "\n", encoding="utf-8")
     if args.json:
         sys.stdout.write(result.to_json() + "\n")
     else:
         _print_text(result.to_dict(), args.out)
+    if args.upload:
+        stored = upload(result.to_json(indent=None), args.upload, args.token, args.name, args.comment, args.activate)
+        print(
+            f"calibration stored as {stored['id']}" + (" (active)" if stored.get("active") else ""),
+            file=sys.stderr if args.json else sys.stdout,
+        )
     return 0
+
+
+def upload(body: str, url: str, token: str | None, name: str, comment: str, activate: bool) -> dict[str, Any]:
+    """POST a calibration's JSON to a service: ``url`` is the service's base URL or the
+    ``/api/v1/calibrations`` endpoint. The equivalent curl line::
+
+        curl -X POST -H "Authorization: Bearer $LRMS_ADMIN_TOKEN" -H "Content-Type: application/json" \\
+             --data @cal.json "http://127.0.0.1:8000/api/v1/calibrations?name=room-2026-05&activate=true"
+    """
+    import os
+
+    import httpx
+
+    from service.config import TOKEN_ENVS
+    from service.errors import ServiceError
+
+    endpoint = url.rstrip("/")
+    if not endpoint.endswith("/api/v1/calibrations"):
+        endpoint += "/api/v1/calibrations"
+    tok = token or os.environ.get(TOKEN_ENVS["admin"])
+    headers = {"Content-Type": "application/json"}
+    if tok:
+        headers["Authorization"] = f"Bearer {tok}"
+    params: dict[str, str] = {"name": name, "comment": comment, "activate": "true" if activate else "false"}
+    try:
+        r = httpx.post(endpoint, content=body, headers=headers, params=params, timeout=60.0)
+    except httpx.HTTPError as exc:
+        raise ServiceError(f"cannot upload the calibration to {endpoint}: {exc}") from None
+    if r.status_code != 201:
+        try:
+            detail = r.json()
+            why = detail.get("message") or detail.get("detail")
+        except ValueError:
+            why = r.text[:200]
+        raise ServiceError(f"the service refused the calibration ({r.status_code}): {why}")
+    out: dict[str, Any] = r.json()
+    return out
 
 
 def _print_text(d: dict[str, Any], out: str | None) -> None:

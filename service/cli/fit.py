@@ -210,6 +210,16 @@ def fit_cylinder_file(args: argparse.Namespace, points: Any, calibration: Any = 
         o, d = model.rays(obs.alpha, obs.beta)
         perp = np.hypot(obs.l * noise.sigma_alpha, (obs.l * np.sin(obs.alpha) + model.p) * noise.sigma_beta)
         rays = Rays(o, d, model.geometric_range(obs.l), np.full(obs.l.size, noise.sigma_l), perp)
+    cal_row = None
+    if calibration is not None and args.line_of_sight:  # the calibration's covariance as a budget row
+
+        def cal_row(fit: Any, inlier_rays: Any) -> Any:
+            from lrms.calibration.budget import calibration_input
+
+            c, o = calibration
+            i = fit.inliers
+            return calibration_input(c, fit, inlier_rays, o.l[i], o.alpha[i], o.beta[i], None, str(args.calibration))
+
     beams = None
     if rays is not None:
         speed = float(np.deg2rad(args.sweep_speed_deg_s))
@@ -232,6 +242,7 @@ def fit_cylinder_file(args: argparse.Namespace, points: Any, calibration: Any = 
         errors=errors,
         beams=beams,
         coverage_factor=coverage_factor,
+        calibration=cal_row,
     )
     result: dict[str, Any] = {"model": "cylinder", "file": str(args.file), **core}
     if args.plot:

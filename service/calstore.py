@@ -1,0 +1,227 @@
+"""The calibration store (issue 12): rig calibrations (``lrms.calibration.CalibrationResult``) with
+a name, a comment, the rig they belong to and which one is active, in one table of the result
+store's database (SQLAlchemy Core).
+
+A calibration is stored as the JSON ``lrms calibrate --json / --out`` writes, checked before it is
+stored (:func:`parse_calibration`: schema, a finite, symmetric, positive semi-definite covariance
+over the estimated parameters, a valid rig model); nothing malformed is stored. At most one
+calibration is active per rig (``rig_id``; ``None`` is a rig of its own): activating one
+deactivates the others of that rig in the same transaction. Measurements map and fit with the
+active one and record which one they used (:mod:`service.fitting`).
+
+The store takes an ``sqlalchemy.Engine``; :func:`engine_for` is the one place that builds it (today
+from the SQLite file of :class:`service.store.Store`).
+"""
+
+from __future__ import annotations
+
+import datetime
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import sqlalchemy as sa
+
+from lrms.calibration import CalibrationError, CalibrationResult
+from lrms.errors import LrmsError
+from lrms.kinematics import RigModel
+from service.store import NotFound, Store, StoreError
+
+metadata = sa.MetaData()
+
+calibrations = sa.Table(
+    "calibrations",
+    metadata,
+    sa.Column("id", sa.String(32), primary_key=True),
+    sa.Column("seq", sa.Integer, nullable=False, index=True),
+    sa.Column("created", sa.String(40), nullable=False),
+    sa.Column("name", sa.String(200), nullable=False, default=""),
+    sa.Column("comment", sa.Text, nullable=False, default=""),
+    sa.Column("rig_id", sa.String(200), nullable=True, index=True),
+    sa.Column("result", sa.Text, nullable=False),
+    sa.Column("active", sa.Boolean, nullable=False, default=False),
+)
+
+
+def engine_for(store: Store) -> sa.Engine:
+    """The engine of the calibration table: the result store's SQLite file (one function, so the
+    store's own engine can take its place)."""
+    path = str(store.path)
+    url = "sqlite://" if path == ":memory:" else f"sqlite:///{Path(path).resolve()}"
+    return sa.create_engine(url, connect_args={"timeout": 30.0})
+
+
+def parse_calibration(data: Any) -> CalibrationResult:
+    """A calibration from its JSON form, checked: :class:`CalibrationError` naming what is wrong.
+
+    Beyond :meth:`CalibrationResult.from_dict`: the estimated parameters are known, distinct rig
+    parameters; the covariance is finite, symmetric and positive semi-definite, and zero outside
+    the estimated parameters (held ones carry no uncertainty of their own)."""
+    try:
+        cal = CalibrationResult.from_dict(data)
+    except CalibrationError:
+        raise
+    except LrmsError as exc:  # the rig model's own checks (unknown or non-finite parameters)
+        raise CalibrationError(f"malformed calibration: {exc}") from None
+    unknown = [n for n in cal.estimated if n not in RigModel.NAMES]
+    if unknown:
+        raise CalibrationError(f"estimated: unknown rig parameter(s) {', '.join(unknown)}")
+    if len(set(cal.estimated)) != len(cal.estimated):
+        raise CalibrationError("estimated: a parameter is named twice")
+    cov = cal.covariance
+    if not np.all(np.isfinite(cov)):
+        raise CalibrationError("covariance: every element must be a finite number")
+    scale = max(float(np.max(np.abs(cov))), 1e-300)
+    if not np.allclose(cov, cov.T, rtol=1e-9, atol=1e-12 * scale):
+        raise CalibrationError("covariance: must be symmetric")
+    idx = [RigModel.NAMES.index(n) for n in cal.estimated]
+    held = [i for i in range(len(RigModel.NAMES)) if i not in idx]
+    if held and np.any(cov[held, :] != 0.0):
+        names = ", ".join(RigModel.NAMES[i] for i in held if np.any(cov[i] != 0.0))
+        raise CalibrationError(f"covariance: rows of parameters not estimated must be zero ({names})")
+    if idx and float(np.min(np.linalg.eigvalsh(cov[np.ix_(idx, idx)]))) < -1e-9 * scale:
+        raise CalibrationError("covariance: must be positive semi-definite")
+    return cal
+
+
+@dataclass(frozen=True)
+class StoredCalibration:
+    """One stored calibration: its record and the calibration itself."""
+
+    id: str
+    created: str
+    name: str
+    comment: str
+    rig_id: str | None
+    active: bool
+    calibration: CalibrationResult
+
+    def reference(self) -> dict[str, Any]:
+        """What a measurement records of the calibration it used: ``{"id", "name", "created"}``."""
+        return {"id": self.id, "name": self.name, "created": self.created}
+
+    def summary(self) -> dict[str, Any]:
+        """The record without the whole result: values in display units, the calibration's date,
+        the estimated and held parameters and the residual summary."""
+        c = self.calibration
+        return {
+            "id": self.id,
+            "created": self.created,
+            "name": self.name,
+            "comment": self.comment,
+            "rig_id": self.rig_id,
+            "active": self.active,
+            "calibrated": c.created,
+            "software_version": c.software_version,
+            "estimated": list(c.estimated),
+            "held": sorted(c.identifiability.held),
+            "model": c.model.display(),
+            "residuals": dict(c.residuals),
+        }
+
+    def payload(self) -> dict[str, Any]:
+        """The record and the calibration's JSON (what the rig process gets and the raw log keeps)."""
+        return {**self.reference(), "rig_id": self.rig_id, "calibration": self.calibration.to_dict()}
+
+    @classmethod
+    def from_payload(cls, data: dict[str, Any]) -> StoredCalibration:
+        return cls(
+            id=str(data["id"]),
+            created=str(data["created"]),
+            name=str(data.get("name", "")),
+            comment="",
+            rig_id=data.get("rig_id"),
+            active=True,
+            calibration=parse_calibration(data["calibration"]),
+        )
+
+
+class CalibrationStore:
+    """Calibrations in the ``calibrations`` table of ``engine``'s database (created if missing)."""
+
+    def __init__(self, engine: sa.Engine) -> None:
+        self.engine = engine
+        try:
+            metadata.create_all(engine)
+        except sa.exc.SQLAlchemyError as exc:
+            raise StoreError(f"cannot open the calibration store: {exc}") from None
+
+    def add(
+        self, calibration: CalibrationResult, *, name: str = "", comment: str = "", rig_id: str | None = None
+    ) -> StoredCalibration:
+        """Store ``calibration`` (inactive); its id and the time it was stored are new."""
+        for label, text in (("name", name), ("comment", comment)):
+            if not isinstance(text, str):
+                raise StoreError(f"a calibration's {label} is text")
+        created = datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds")
+        cid = uuid.uuid4().hex[:16]
+        with self.engine.begin() as conn:
+            seq = conn.execute(sa.select(sa.func.coalesce(sa.func.max(calibrations.c.seq), 0))).scalar_one()
+            conn.execute(
+                calibrations.insert().values(
+                    id=cid,
+                    seq=int(seq) + 1,
+                    created=created,
+                    name=name,
+                    comment=comment,
+                    rig_id=rig_id,
+                    result=calibration.to_json(indent=None),
+                    active=False,
+                )
+            )
+        return StoredCalibration(cid, created, name, comment, rig_id, False, calibration)
+
+    def get(self, cid: str) -> StoredCalibration:
+        with self.engine.connect() as conn:
+            row = conn.execute(sa.select(calibrations).where(calibrations.c.id == cid)).first()
+        if row is None:
+            raise NotFound(f"no calibration {cid}")
+        return _record(row)
+
+    def list(self, rig_id: str | None = None, limit: int = 100, offset: int = 0) -> list[StoredCalibration]:
+        """Newest first; ``rig_id`` given: that rig's only."""
+        q = sa.select(calibrations).order_by(calibrations.c.seq.desc()).limit(limit).offset(offset)
+        if rig_id is not None:
+            q = q.where(calibrations.c.rig_id == rig_id)
+        with self.engine.connect() as conn:
+            return [_record(r) for r in conn.execute(q)]
+
+    def active(self, rig_id: str | None) -> StoredCalibration | None:
+        """The active calibration of ``rig_id`` (None: none is active)."""
+        with self.engine.connect() as conn:
+            row = conn.execute(
+                sa.select(calibrations).where(calibrations.c.active.is_(True), _same_rig(rig_id)).limit(1)
+            ).first()
+        return None if row is None else _record(row)
+
+    def activate(self, cid: str) -> StoredCalibration:
+        """Make ``cid`` its rig's active calibration (the rig's other calibrations become inactive)."""
+        with self.engine.begin() as conn:
+            row = conn.execute(sa.select(calibrations.c.rig_id).where(calibrations.c.id == cid)).first()
+            if row is None:
+                raise NotFound(f"no calibration {cid}")
+            conn.execute(calibrations.update().where(_same_rig(row.rig_id)).values(active=False))
+            conn.execute(calibrations.update().where(calibrations.c.id == cid).values(active=True))
+        return self.get(cid)
+
+    def close(self) -> None:
+        self.engine.dispose()
+
+
+def _same_rig(rig_id: str | None) -> sa.ColumnElement[bool]:
+    col = calibrations.c.rig_id
+    return col.is_(None) if rig_id is None else col == rig_id
+
+
+def _record(row: Any) -> StoredCalibration:
+    return StoredCalibration(
+        id=row.id,
+        created=row.created,
+        name=row.name,
+        comment=row.comment,
+        rig_id=row.rig_id,
+        active=bool(row.active),
+        calibration=CalibrationResult.from_json(row.result),
+    )
