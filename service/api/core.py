@@ -86,7 +86,7 @@ class Service:
         rig_reset: RigInfo | None = None,
     ) -> None:
         self.config = config
-        self.store = store or Store(config.storage.db_path)
+        self.store = store or Store(config.storage.db_url, config.storage.rig_id)
         self.metrics = Metrics()
         self.hub = ProgressHub()
         self.runner = JobRunner(
