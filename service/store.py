@@ -125,6 +125,8 @@ class Store:
             self.engine: Engine = db_engine.create(self.url)
             if migrate_schema:
                 migrate.upgrade(self.engine, self.rig_id)
+        except db_engine.DatabaseError as exc:
+            raise StoreError(str(exc)) from None
         except (SQLAlchemyError, OSError) as exc:
             raise StoreError(f"cannot open result store {db_engine.shown(self.url)}: {exc}") from None
         self._lock = threading.Lock()

@@ -12,6 +12,7 @@ first SQLite store did; times are epoch seconds; flags are integers 0/1.
 from __future__ import annotations
 
 from sqlalchemy import BigInteger, Column, Float, Index, Integer, MetaData, String, Table, Text
+from sqlalchemy.dialects.sqlite import REAL
 
 from service.db import RIG_ID_LENGTH
 
@@ -26,18 +27,21 @@ NAMING = {
 
 metadata = MetaData(naming_convention=NAMING)
 
+#: A double: ``REAL`` on SQLite (as the first store declared it), ``FLOAT`` (8 bytes) on PostgreSQL.
+Double = Float().with_variant(REAL(), "sqlite")
+
 
 measurements = Table(
     "measurements",
     metadata,
     Column("id", Text, primary_key=True),
     Column("seq", Integer, nullable=False),  # queue order; one sequence over all rigs
-    Column("created_at", Float, nullable=False),
-    Column("started_at", Float),
-    Column("finished_at", Float),
+    Column("created_at", Double, nullable=False),
+    Column("started_at", Double),
+    Column("finished_at", Double),
     Column("state", Text, nullable=False),
     Column("request", Text, nullable=False),
-    Column("progress", Float, nullable=False, server_default="0"),
+    Column("progress", Double, nullable=False, server_default="0"),
     Column("message", Text, nullable=False, server_default=""),
     Column("result", Text),
     Column("error", Text),
@@ -54,14 +58,14 @@ schedules = Table(
     "schedules",
     metadata,
     Column("id", Text, primary_key=True),
-    Column("created_at", Float, nullable=False),
+    Column("created_at", Double, nullable=False),
     Column("name", Text, nullable=False, server_default=""),
     Column("cron", Text),
-    Column("interval_s", Float),
+    Column("interval_s", Double),
     Column("template", Text, nullable=False),
     Column("enabled", Integer, nullable=False, server_default="1"),
-    Column("next_run", Float),
-    Column("last_run", Float),
+    Column("next_run", Double),
+    Column("last_run", Double),
     Column("last_measurement_id", Text),
     Column("rig_id", String(RIG_ID_LENGTH), nullable=False),
     Index("schedules_rig", "rig_id", "created_at"),

@@ -13,11 +13,15 @@ from __future__ import annotations
 
 import sqlalchemy as sa
 from alembic import op
+from sqlalchemy.dialects.sqlite import REAL
 
 revision = "0001"
 down_revision: str | None = None
 branch_labels: str | None = None
 depends_on: str | None = None
+
+#: REAL as the first store declared it on SQLite; an 8-byte float elsewhere.
+Double = sa.Float().with_variant(REAL(), "sqlite")
 
 
 def upgrade() -> None:
@@ -28,12 +32,12 @@ def upgrade() -> None:
             "measurements",
             sa.Column("id", sa.Text, primary_key=True),
             sa.Column("seq", sa.Integer, nullable=False),
-            sa.Column("created_at", sa.Float, nullable=False),
-            sa.Column("started_at", sa.Float),
-            sa.Column("finished_at", sa.Float),
+            sa.Column("created_at", Double, nullable=False),
+            sa.Column("started_at", Double),
+            sa.Column("finished_at", Double),
             sa.Column("state", sa.Text, nullable=False),
             sa.Column("request", sa.Text, nullable=False),
-            sa.Column("progress", sa.Float, nullable=False, server_default="0"),
+            sa.Column("progress", Double, nullable=False, server_default="0"),
             sa.Column("message", sa.Text, nullable=False, server_default=""),
             sa.Column("result", sa.Text),
             sa.Column("error", sa.Text),
@@ -50,14 +54,14 @@ def upgrade() -> None:
         op.create_table(
             "schedules",
             sa.Column("id", sa.Text, primary_key=True),
-            sa.Column("created_at", sa.Float, nullable=False),
+            sa.Column("created_at", Double, nullable=False),
             sa.Column("name", sa.Text, nullable=False, server_default=""),
             sa.Column("cron", sa.Text),
-            sa.Column("interval_s", sa.Float),
+            sa.Column("interval_s", Double),
             sa.Column("template", sa.Text, nullable=False),
             sa.Column("enabled", sa.Integer, nullable=False, server_default="1"),
-            sa.Column("next_run", sa.Float),
-            sa.Column("last_run", sa.Float),
+            sa.Column("next_run", Double),
+            sa.Column("last_run", Double),
             sa.Column("last_measurement_id", sa.Text),
         )
 

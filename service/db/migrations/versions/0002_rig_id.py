@@ -32,6 +32,8 @@ def upgrade() -> None:
         if sqlite:  # SQLite cannot drop a column default in place: the table is copied
             with op.batch_alter_table(table, recreate="always") as batch:
                 batch.alter_column("rig_id", server_default=None, existing_type=sa.String(RIG_ID_LENGTH))
+                # the first store's "id TEXT PRIMARY KEY" let SQLite take NULL ids (it never wrote one)
+                batch.alter_column("id", nullable=False, existing_type=sa.Text)
         else:
             op.alter_column(table, "rig_id", server_default=None, existing_type=sa.String(RIG_ID_LENGTH))
     op.create_index("measurements_rig_state", "measurements", ["rig_id", "state", "seq"])
