@@ -31,8 +31,9 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from sqlalchemy import Connection, Engine, RowMapping, Select, func, insert, select, update
+from sqlalchemy import Connection, Engine, RowMapping, Select, bindparam, func, insert, select, update
 from sqlalchemy.exc import SQLAlchemyError
+from sqlalchemy.pool import PoolProxiedConnection
 
 from service.db import check_rig_id, default_rig_id, migrate
 from service.db import engine as db_engine
@@ -99,6 +100,19 @@ class Schedule:
         return asdict(self)
 
 
+# statements run per request or per job-runner turn, built once
+_GET = select(M).where(M.c.id == bindparam("mid"))
+_QUEUED = select(M).where(M.c.rig_id == bindparam("rig"), M.c.state == "queued").order_by(M.c.seq)
+_BUMP = update(store_version).where(store_version.c.id == 1).values(n=store_version.c.n + 1)
+_NEXT_SEQ = select(func.coalesce(func.max(M.c.seq), 0) + 1)
+_INSERT_M = insert(M)
+_STATE_OF = select(M.c.state, M.c.rig_id).where(M.c.id == bindparam("m_id"))
+# the columns to set are the parameters' other keys
+_UPDATE_M = update(M).where(M.c.id == bindparam("m_id"))
+_UPDATE_MINE = update(M).where(M.c.id == bindparam("m_id"), M.c.rig_id == bindparam("m_rig"))
+_PROGRESS = update(M).where(M.c.id == bindparam("m_id"), M.c.rig_id == bindparam("m_rig"), M.c.state == "running")
+
+
 def _new_id() -> str:
     return uuid.uuid4().hex[:16]
 
@@ -131,18 +145,43 @@ class Store:
             raise StoreError(f"cannot open result store {db_engine.shown(self.url)}: {exc}") from None
         self._lock = threading.Lock()
         self._writes = 0
+        self._poll: PoolProxiedConnection | None = None
 
     @property
     def version(self) -> tuple[int, int]:
         """Changes whenever the stored data may have changed: this store's committed writes and the
         database's write counter (``store_version``, which every store's write moves, whatever its
         rig or process). Readers cache what they built from the store under the version they read
-        *before* building it (the API caches its serialised responses this way)."""
-        with self.engine.connect() as conn:
-            n = conn.execute(select(store_version.c.n).where(store_version.c.id == 1)).scalar_one()
-        return self._writes, int(n)
+        *before* building it (the API caches its serialised responses this way).
+
+        Polled per API request, so read on a connection of its own in autocommit, in plain SQL
+        (a few microseconds on SQLite instead of a pooled SQLAlchemy round)."""
+        with self._lock:
+            for attempt in (1, 2):
+                if self._poll is None:
+                    self._poll = self.engine.raw_connection()
+                    if self.engine.dialect.name == "postgresql":
+                        self._poll.driver_connection.autocommit = True  # type: ignore[union-attr]
+                try:
+                    cur = self._poll.cursor()
+                    cur.execute("SELECT n FROM store_version WHERE id = 1")
+                    row = cur.fetchone()
+                    cur.close()
+                    if row is None:
+                        raise StoreError("the result store has no store_version row (not migrated?)")
+                    return self._writes, int(row[0])
+                except Exception:  # a connection the server dropped: once more on a new one
+                    self._poll.invalidate()
+                    self._poll = None
+                    if attempt == 2:
+                        raise
+        raise AssertionError("unreachable")
 
     def close(self) -> None:
+        with self._lock:
+            if self._poll is not None:
+                self._poll.invalidate()  # closed, not returned to the pool in autocommit
+                self._poll = None
         self.engine.dispose()
 
     @contextmanager
@@ -153,7 +192,7 @@ class Store:
         with self.engine.connect() as conn:
             conn.execution_options(**{db_engine.WRITE: True})
             with conn.begin():
-                conn.execute(update(store_version).where(store_version.c.id == 1).values(n=store_version.c.n + 1))
+                conn.execute(_BUMP)
                 yield conn
         with self._lock:
             self._writes += 1
@@ -166,23 +205,25 @@ class Store:
     def create_measurement(self, request: dict[str, Any], schedule_id: str | None = None) -> Measurement:
         mid = _new_id()
         with self._tx() as db:
-            seq = db.execute(select(func.coalesce(func.max(M.c.seq), 0) + 1)).scalar_one()
+            seq = db.execute(_NEXT_SEQ).scalar_one()
             db.execute(
-                insert(M).values(
-                    id=mid,
-                    seq=seq,
-                    created_at=time.time(),
-                    state="queued",
-                    request=json.dumps(request),
-                    schedule_id=schedule_id,
-                    rig_id=self.rig_id,
-                )
+                _INSERT_M,
+                {
+                    "id": mid,
+                    "seq": seq,
+                    "created_at": time.time(),
+                    "state": "queued",
+                    "request": json.dumps(request),
+                    "schedule_id": schedule_id,
+                    "rig_id": self.rig_id,
+                },
             )
         return self.get(mid)
 
     def get(self, mid: str) -> Measurement:
         """The measurement ``mid`` of any rig."""
-        rows = self._rows(select(M).where(M.c.id == mid))
+        with self.engine.connect() as conn:
+            rows = list(conn.execute(_GET, {"mid": mid}).mappings())
         if not rows:
             raise NotFound(f"no measurement {mid!r}")
         return _measurement(rows[0])
@@ -203,8 +244,9 @@ class Store:
 
     def queued(self) -> list[Measurement]:
         """This rig's queued measurements, oldest first (the order they run in)."""
-        q = select(M).where(M.c.rig_id == self.rig_id, M.c.state == "queued").order_by(M.c.seq)
-        return [_measurement(r) for r in self._rows(q)]
+        with self.engine.connect() as conn:
+            rows = conn.execute(_QUEUED, {"rig": self.rig_id}).mappings()
+            return [_measurement(r) for r in rows]
 
     def count_by_state(self) -> dict[str, int]:
         """This rig's measurements per state."""
@@ -217,14 +259,14 @@ class Store:
 
     def _transition(self, mid: str, allowed: tuple[str, ...], values: dict[str, Any]) -> Measurement:
         with self._tx() as db:
-            row = db.execute(select(M.c.state, M.c.rig_id).where(M.c.id == mid)).first()
+            row = db.execute(_STATE_OF, {"m_id": mid}).first()
             if row is None:
                 raise NotFound(f"no measurement {mid!r}")
             if row.rig_id != self.rig_id:
                 raise StoreError(f"measurement {mid} belongs to rig {row.rig_id!r}, not to this one ({self.rig_id!r})")
             if row.state not in allowed:
                 raise StoreError(f"measurement {mid} is {row.state}")
-            db.execute(update(M).where(M.c.id == mid).values(**values))
+            db.execute(_UPDATE_M, {"m_id": mid, **values})
         return self.get(mid)
 
     def start(self, mid: str) -> Measurement:
@@ -235,9 +277,13 @@ class Store:
     def set_progress(self, mid: str, progress: float, message: str = "") -> None:
         with self._tx() as db:
             db.execute(
-                update(M)
-                .where(M.c.id == mid, M.c.rig_id == self.rig_id, M.c.state == "running")
-                .values(progress=min(max(float(progress), 0.0), 1.0), message=message)
+                _PROGRESS,
+                {
+                    "m_id": mid,
+                    "m_rig": self.rig_id,
+                    "progress": min(max(float(progress), 0.0), 1.0),
+                    "message": message,
+                },
             )
 
     def set_paths(
@@ -250,7 +296,7 @@ class Store:
             values.update(cloud_path=cloud_path)
         if values:
             with self._tx() as db:
-                db.execute(update(M).where(M.c.id == mid, M.c.rig_id == self.rig_id).values(**values))
+                db.execute(_UPDATE_MINE, {"m_id": mid, "m_rig": self.rig_id, **values})
 
     def finish(self, mid: str, result: dict[str, Any]) -> Measurement:
         return self._transition(

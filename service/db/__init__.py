@@ -12,7 +12,7 @@ import socket
 #: The longest rig id (``[storage] rig_id``).
 RIG_ID_LENGTH = 64
 #: What a rig id may hold: letters, digits, ``.``, ``_`` and ``-`` (a host name fits).
-RIG_ID_RE = re.compile(r"[A-Za-z0-9._-]{1,64}")
+RIG_ID_RE = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
 
 
 def default_rig_id() -> str:

@@ -2,8 +2,9 @@
 
 SQLite: write-ahead log (readers never wait for the writer), foreign keys on, a busy timeout so a
 writer waits for another process's write instead of failing, and transactions begun by hand: a
-read begins a deferred transaction, a write (a connection with the ``write`` execution option)
-``BEGIN IMMEDIATE``, so two writers never deadlock upgrading read locks.
+write (a connection with the :data:`WRITE` execution option) begins ``BEGIN IMMEDIATE``, so two
+writers never deadlock upgrading read locks; a read is not wrapped in a transaction (each of the
+store's reads is one statement, consistent by itself).
 
 PostgreSQL goes through psycopg 3 (``postgresql://`` is read as ``postgresql+psycopg://``); the
 password, when there is one, best comes from ``PGPASSWORD`` or ``~/.pgpass`` rather than the URL.
@@ -100,6 +101,8 @@ def _sqlite(u: URL) -> Engine:
 
     @event.listens_for(engine, "begin")
     def _begin(conn: Any) -> None:
-        conn.exec_driver_sql("BEGIN IMMEDIATE" if conn.get_execution_options().get(WRITE) else "BEGIN")
+        # a read runs in autocommit (one statement is its own consistent snapshot; no BEGIN to pay)
+        if conn.get_execution_options().get(WRITE):
+            conn.exec_driver_sql("BEGIN IMMEDIATE")
 
     return engine

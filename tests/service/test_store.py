@@ -276,7 +276,10 @@ CREATE TABLE IF NOT EXISTS schedules (
 
 def old_store(path: Path, with_raw_truncated: bool = True) -> None:
     """A file as that store left it: WAL journal, five measurements in every state, two schedules."""
-    schema = OLD_SCHEMA if with_raw_truncated else OLD_SCHEMA.replace(",\n    raw_truncated INTEGER NOT NULL DEFAULT 0", "")
+    schema = OLD_SCHEMA
+    if not with_raw_truncated:  # a file older still: the store added this column to it itself
+        schema = OLD_SCHEMA.replace(",\n    raw_truncated INTEGER NOT NULL DEFAULT 0", "")
+        assert "raw_truncated" not in schema
     db = sqlite3.connect(path, isolation_level=None)
     db.execute("PRAGMA journal_mode=WAL")
     db.executescript(schema)
