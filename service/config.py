@@ -203,7 +203,7 @@ class StorageConfig(_Strict):
 
     dir: Path = Path("lrms-data")
     database: str = "lrms.sqlite"
-    url: str | None = None
+    url: str | None = Field(default=None, repr=False)  # may hold a password
     rig_id: str = Field(default_factory=default_rig_id)
 
     @field_validator("rig_id")

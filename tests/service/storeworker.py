@@ -1,6 +1,7 @@
 """One rig's service writing to a shared result store, as a process of its own (the concurrency test).
 
-``python -m tests.service.storeworker URL RIG N START_AT``: from wall-clock time ``START_AT`` on,
+``python -m tests.service.storeworker URL RIG N START_AT``: opens the store 1 s before wall-clock
+time ``START_AT`` (two workers on a new database migrate it at the same moment); from then on,
 queue ``N`` measurements and run each through start, progress and finish; every 5th is cancelled
 instead, and a schedule is added and marked run. Prints the number of write transactions it made.
 """
@@ -14,6 +15,7 @@ from service.store import Store
 
 
 def main(url: str, rig: str, n: int, start_at: float) -> int:
+    time.sleep(max(0.0, start_at - time.time() - 1.0))  # both open (and migrate) the store together
     store = Store(url, rig)
     time.sleep(max(0.0, start_at - time.time()))
     writes = 0

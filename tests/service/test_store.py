@@ -199,7 +199,7 @@ def test_concurrent_services_of_two_rigs_lose_nothing(db_url: str) -> None:
     and schedule run of both is there, the queue order has no duplicate, and the write counter
     counts every write transaction of both (an increment lost to a race would show here)."""
     n = 60
-    Store(db_url, "init").close()  # migrate first: the workers start on the same schema
+    # the two open the new database at the same moment: it is migrated once, under the lock
     start_at = time.time() + 3.0
     procs = [
         subprocess.Popen(

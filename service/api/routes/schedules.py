@@ -52,7 +52,7 @@ def create_schedule(req: ScheduleRequest, service: ServiceDep) -> ScheduleOut:
     return schedule_out(service.scheduler.add(req))
 
 
-@router.get("", response_model=list[ScheduleOut])
+@router.get("", response_model=list[ScheduleOut], responses=responses(422))
 async def list_schedules(service: ServiceDep, rig: RigFilter = None) -> Response:
     """Oldest first, of every rig whose service shares this database (``rig`` picks one; each
     rig's service runs its own schedules only)."""
@@ -73,7 +73,7 @@ async def get_schedule(sid: ScheduleId, service: ServiceDep) -> ScheduleOut:
     status_code=204,
     dependencies=ADMIN,
     response_class=Response,
-    responses=responses(401, 403, 404, 413, 422),
+    responses=responses(401, 403, 404, 409, 413, 422),
 )
 def delete_schedule(sid: ScheduleId, service: ServiceDep) -> Response:
     service.store.delete_schedule(sid)
