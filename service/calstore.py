@@ -9,8 +9,8 @@ calibration is active per rig (``rig_id``; ``None`` is a rig of its own): activa
 deactivates the others of that rig in the same transaction. Measurements map and fit with the
 active one and record which one they used (:mod:`service.fitting`).
 
-The store takes an ``sqlalchemy.Engine``; :func:`engine_for` is the one place that builds it (today
-from the SQLite file of :class:`service.store.Store`).
+The table is part of the result store's schema (:data:`service.db.schema.calibrations`, created by
+migration 0003); the store takes the result store's ``sqlalchemy.Engine`` (:attr:`service.store.Store.engine`).
 """
 
 from __future__ import annotations
@@ -18,7 +18,6 @@ from __future__ import annotations
 import datetime
 import uuid
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -27,30 +26,8 @@ import sqlalchemy as sa
 from lrms.calibration import CalibrationError, CalibrationResult
 from lrms.errors import LrmsError
 from lrms.kinematics import RigModel
-from service.store import NotFound, Store, StoreError
-
-metadata = sa.MetaData()
-
-calibrations = sa.Table(
-    "calibrations",
-    metadata,
-    sa.Column("id", sa.String(32), primary_key=True),
-    sa.Column("seq", sa.Integer, nullable=False, index=True),
-    sa.Column("created", sa.String(40), nullable=False),
-    sa.Column("name", sa.String(200), nullable=False, default=""),
-    sa.Column("comment", sa.Text, nullable=False, default=""),
-    sa.Column("rig_id", sa.String(200), nullable=True, index=True),
-    sa.Column("result", sa.Text, nullable=False),
-    sa.Column("active", sa.Boolean, nullable=False, default=False),
-)
-
-
-def engine_for(store: Store) -> sa.Engine:
-    """The engine of the calibration table: the result store's SQLite file (one function, so the
-    store's own engine can take its place)."""
-    path = str(store.path)
-    url = "sqlite://" if path == ":memory:" else f"sqlite:///{Path(path).resolve()}"
-    return sa.create_engine(url, connect_args={"timeout": 30.0})
+from service.db.schema import calibrations
+from service.store import NotFound, StoreError
 
 
 def parse_calibration(data: Any) -> CalibrationResult:
@@ -139,14 +116,11 @@ class StoredCalibration:
 
 
 class CalibrationStore:
-    """Calibrations in the ``calibrations`` table of ``engine``'s database (created if missing)."""
+    """Calibrations in the ``calibrations`` table of ``engine``'s database (the result store's,
+    migrated: :class:`service.store.Store` creates it)."""
 
     def __init__(self, engine: sa.Engine) -> None:
         self.engine = engine
-        try:
-            metadata.create_all(engine)
-        except sa.exc.SQLAlchemyError as exc:
-            raise StoreError(f"cannot open the calibration store: {exc}") from None
 
     def add(
         self, calibration: CalibrationResult, *, name: str = "", comment: str = "", rig_id: str | None = None

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import tomllib
 from importlib import resources
 from pathlib import Path
@@ -29,6 +30,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from lrms import budget as _budget
 from lrms.errors import LrmsError
 from lrms.kinematics import RigCalibration
+from service.db import check_rig_id, default_rig_id
 from service.errors import ConfigError
 
 TOKEN_ENV = "LRMS_API_TOKEN"
@@ -193,14 +195,37 @@ class NoiseConfig(_Strict):
 
 
 class StorageConfig(_Strict):
-    """Where results, raw logs and clouds go. Relative paths are relative to the config file."""
+    """Where results, raw logs and clouds go. Relative paths are relative to the config file.
+
+    ``url`` names the result database (``sqlite:///PATH`` or ``postgresql://user@host/db``); without
+    it, the SQLite file ``database`` in ``dir``. ``rig_id`` tags every row this rig's service
+    writes (default: the host name), so the services of many rigs can share one database."""
 
     dir: Path = Path("lrms-data")
     database: str = "lrms.sqlite"
+    url: str | None = Field(default=None, repr=False)  # may hold a password
+    rig_id: str = Field(default_factory=default_rig_id)
+
+    @field_validator("rig_id")
+    @classmethod
+    def _rig_id(cls, v: str) -> str:
+        return check_rig_id(v)
+
+    @field_validator("url")
+    @classmethod
+    def _url(cls, v: str | None) -> str | None:
+        if v is not None and not re.match(r"(sqlite|postgresql)(\+\w+)?://", v):
+            raise ValueError("a database URL: sqlite:///PATH or postgresql://user@host/db")
+        return v
 
     @property
     def db_path(self) -> Path:
         return self.dir / self.database
+
+    @property
+    def db_url(self) -> str:
+        """The result database's URL: ``url``, else the SQLite file ``dir/database``."""
+        return self.url if self.url is not None else f"sqlite:///{self.db_path}"
 
     @property
     def raw_dir(self) -> Path:
@@ -445,6 +470,12 @@ def parse_config(data: dict[str, Any], base_dir: Path | None = None, source: str
     if base_dir is not None and not cfg.storage.dir.is_absolute():
         storage = cfg.storage.model_copy(update={"dir": (base_dir / cfg.storage.dir).resolve()})
         cfg = cfg.model_copy(update={"storage": storage})
+    url = cfg.storage.url
+    if base_dir is not None and url is not None and url.startswith("sqlite:///"):
+        file = url.removeprefix("sqlite:///")
+        if file and file != ":memory:" and not Path(file).is_absolute():  # relative to the config file too
+            storage = cfg.storage.model_copy(update={"url": f"sqlite:///{(base_dir / file).resolve()}"})
+            cfg = cfg.model_copy(update={"storage": storage})
     if base_dir is not None and cfg.api.tls_cert is not None and cfg.api.tls_key is not None:
         api = cfg.api.model_copy(
             update={"tls_cert": base_dir / cfg.api.tls_cert, "tls_key": base_dir / cfg.api.tls_key}

@@ -396,6 +396,7 @@ class MeasurementOut(BaseModel):
     )
     has_cloud: bool
     schedule_id: str | None
+    rig_id: str = Field(default="", description="the rig whose service made it ([storage] rig_id)")
 
 
 class ScheduleOut(BaseModel):
@@ -407,3 +408,4 @@ class ScheduleOut(BaseModel):
     next_run: float | None
     last_run: float | None
     last_measurement_id: str | None
+    rig_id: str = Field(default="", description="the rig whose service runs it ([storage] rig_id)")

@@ -74,7 +74,7 @@ class Scheduler:
         """Queue every due schedule; return the earliest next due time (or now + 1 s)."""
         t = time.time() if now is None else now
         earliest = t + 1.0
-        for s in self.store.list_schedules():
+        for s in self.store.list_schedules(rig=self.store.rig_id):
             if not s.enabled:
                 continue
             due = s.next_run if s.next_run is not None else t

@@ -1,4 +1,4 @@
-"""The result store: measurements and schedules in one SQLite file.
+"""The result store: measurements and schedules, in SQLite (embedded, the default) or PostgreSQL.
 
 A measurement goes ``queued -> running -> done | failed``, or ``queued | running -> cancelled``.
 It keeps its request, progress (0..1 and a message), the result JSON, the failure reason and the
@@ -8,15 +8,20 @@ job runner marks a measurement left ``running`` by a process that died ``failed`
 state after the crash is unknown, so the sweep is not silently resumed), while ``queued`` ones
 stay queued and the job runner picks them up again in order.
 
-The connection is shared by the threads of one process behind a lock; the file uses SQLite's
-write-ahead log so readers never wait for a writer. :attr:`Store.version` tells readers when
-something they cached may be stale.
+The store opens a storage URL (``[storage] url``: ``sqlite:///PATH`` or ``postgresql://...``; a
+plain path is a SQLite file) with SQLAlchemy Core (:mod:`service.db`), and brings its schema to the
+newest migration first. Every row carries the rig id of the store that made it, so the services of
+many rigs share one database: a store's queue, running measurements, counts and schedules are its
+own rig's; reads of single rows and the measurement list see every rig (the list filters by rig on
+request); a store changes only its own rig's rows. Writes are serialised over the whole database
+(each write transaction first increments the one row of ``store_version``), so two services never
+lose each other's updates. :attr:`Store.version` tells readers when something they cached may be
+stale; :attr:`Store.engine` is there for other modules' tables in the same database.
 """
 
 from __future__ import annotations
 
 import json
-import sqlite3
 import threading
 import time
 import uuid
@@ -26,44 +31,20 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Literal
 
+from sqlalchemy import Connection, Engine, RowMapping, Select, bindparam, func, insert, select, update
+from sqlalchemy.exc import SQLAlchemyError
+from sqlalchemy.pool import PoolProxiedConnection
+
+from service.db import check_rig_id, default_rig_id, migrate
+from service.db import engine as db_engine
+from service.db.schema import measurements as M
+from service.db.schema import schedules as S
+from service.db.schema import store_version
 from service.errors import ServiceError
 
 State = Literal["queued", "running", "done", "failed", "cancelled"]
 STATES: tuple[str, ...] = ("queued", "running", "done", "failed", "cancelled")
 FINAL_STATES = frozenset({"done", "failed", "cancelled"})
-
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS measurements (
-    id TEXT PRIMARY KEY,
-    seq INTEGER NOT NULL,
-    created_at REAL NOT NULL,
-    started_at REAL,
-    finished_at REAL,
-    state TEXT NOT NULL,
-    request TEXT NOT NULL,
-    progress REAL NOT NULL DEFAULT 0,
-    message TEXT NOT NULL DEFAULT '',
-    result TEXT,
-    error TEXT,
-    raw_path TEXT,
-    cloud_path TEXT,
-    schedule_id TEXT,
-    raw_truncated INTEGER NOT NULL DEFAULT 0
-);
-CREATE INDEX IF NOT EXISTS measurements_state ON measurements(state, seq);
-CREATE TABLE IF NOT EXISTS schedules (
-    id TEXT PRIMARY KEY,
-    created_at REAL NOT NULL,
-    name TEXT NOT NULL DEFAULT '',
-    cron TEXT,
-    interval_s REAL,
-    template TEXT NOT NULL,
-    enabled INTEGER NOT NULL DEFAULT 1,
-    next_run REAL,
-    last_run REAL,
-    last_measurement_id TEXT
-);
-"""
 
 
 #: The failure reason of a measurement a dead process left running (the job runner adds what it
@@ -95,6 +76,7 @@ class Measurement:
     cloud_path: str | None
     schedule_id: str | None
     raw_truncated: bool = False  # the raw log was rebuilt from a file cut short (the process died)
+    rig_id: str = ""  # the rig whose service made it
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -112,169 +94,248 @@ class Schedule:
     next_run: float | None
     last_run: float | None
     last_measurement_id: str | None
+    rig_id: str = ""
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+
+# statements run per request or per job-runner turn, built once
+_GET = select(M).where(M.c.id == bindparam("mid"))
+_QUEUED = select(M).where(M.c.rig_id == bindparam("rig"), M.c.state == "queued").order_by(M.c.seq)
+_BUMP = update(store_version).where(store_version.c.id == 1).values(n=store_version.c.n + 1)
+_NEXT_SEQ = select(func.coalesce(func.max(M.c.seq), 0) + 1)
+_INSERT_M = insert(M)
+_STATE_OF = select(M.c.state, M.c.rig_id).where(M.c.id == bindparam("m_id"))
+# the columns to set are the parameters' other keys
+_UPDATE_M = update(M).where(M.c.id == bindparam("m_id"))
+_UPDATE_MINE = update(M).where(M.c.id == bindparam("m_id"), M.c.rig_id == bindparam("m_rig"))
+_PROGRESS = update(M).where(M.c.id == bindparam("m_id"), M.c.rig_id == bindparam("m_rig"), M.c.state == "running")
 
 
 def _new_id() -> str:
     return uuid.uuid4().hex[:16]
 
 
-class Store:
-    """SQLite-backed store of measurements and schedules."""
+def store_url(where: str | Path) -> str:
+    """A storage URL for ``where``: a URL as it is, a path as the URL of a SQLite file."""
+    if isinstance(where, str) and "://" in where:
+        return where
+    return db_engine.sqlite_url(where)
 
-    def __init__(self, path: str | Path) -> None:
-        self.path = Path(path)
-        if str(path) != ":memory:":
-            self.path.parent.mkdir(parents=True, exist_ok=True)
+
+class Store:
+    """The measurements and schedules of rig ``rig_id`` (default: this host's name) in the database
+    at ``url`` (a storage URL or the path of a SQLite file), migrated to the newest schema on opening
+    unless ``migrate_schema`` is false."""
+
+    def __init__(self, url: str | Path, rig_id: str | None = None, *, migrate_schema: bool = True) -> None:
+        self.url = store_url(url)
         try:
-            self._db = sqlite3.connect(str(path), check_same_thread=False, isolation_level=None)
-            self._db.row_factory = sqlite3.Row
-            self._db.execute("PRAGMA journal_mode=WAL")
-            self._db.execute("PRAGMA synchronous=NORMAL")
-            self._db.executescript(_SCHEMA)
-            columns = {r[1] for r in self._db.execute("PRAGMA table_info(measurements)")}
-            if "raw_truncated" not in columns:  # a store written before the column existed
-                self._db.execute("ALTER TABLE measurements ADD COLUMN raw_truncated INTEGER NOT NULL DEFAULT 0")
-        except sqlite3.Error as exc:
-            raise StoreError(f"cannot open result store {path}: {exc}") from None
-        self._lock = threading.RLock()
+            self.rig_id = check_rig_id(rig_id if rig_id is not None else default_rig_id())
+        except ValueError as exc:
+            raise StoreError(str(exc)) from None
+        try:
+            self.engine: Engine = db_engine.create(self.url)
+            if migrate_schema:
+                migrate.upgrade(self.engine, self.rig_id)
+        except db_engine.DatabaseError as exc:
+            raise StoreError(str(exc)) from None
+        except (SQLAlchemyError, OSError) as exc:
+            raise StoreError(f"cannot open result store {db_engine.shown(self.url)}: {exc}") from None
+        self._lock = threading.Lock()
         self._writes = 0
+        self._poll: PoolProxiedConnection | None = None
 
     @property
     def version(self) -> tuple[int, int]:
-        """Changes whenever the stored data may have changed: this store's committed writes and
-        SQLite's ``data_version`` (which moves when another connection to the file commits).
-        Readers cache what they built from the store under the version they read *before* building
-        it (the API caches its serialised responses this way)."""
+        """Changes whenever the stored data may have changed: this store's committed writes and the
+        database's write counter (``store_version``, which every store's write moves, whatever its
+        rig or process). Readers cache what they built from the store under the version they read
+        *before* building it (the API caches its serialised responses this way).
+
+        Polled per API request, so read on a connection of its own in autocommit, in plain SQL
+        (a few microseconds on SQLite instead of a pooled SQLAlchemy round)."""
         with self._lock:
-            return self._writes, int(self._db.execute("PRAGMA data_version").fetchone()[0])
+            for attempt in (1, 2):
+                if self._poll is None:
+                    self._poll = self.engine.raw_connection()
+                    if self.engine.dialect.name == "postgresql":
+                        self._poll.driver_connection.autocommit = True  # type: ignore[union-attr]
+                try:
+                    cur = self._poll.cursor()
+                    cur.execute("SELECT n FROM store_version WHERE id = 1")
+                    row = cur.fetchone()
+                    cur.close()
+                    if row is None:
+                        raise StoreError("the result store has no store_version row (not migrated?)")
+                    return self._writes, int(row[0])
+                except Exception:  # a connection the server dropped: once more on a new one
+                    self._poll.invalidate()
+                    self._poll = None
+                    if attempt == 2:
+                        raise
+        raise AssertionError("unreachable")
 
     def close(self) -> None:
         with self._lock:
-            self._db.close()
+            if self._poll is not None:
+                self._poll.invalidate()  # closed, not returned to the pool in autocommit
+                self._poll = None
+        self.engine.dispose()
 
     @contextmanager
-    def _tx(self) -> Iterator[sqlite3.Connection]:
+    def _tx(self) -> Iterator[Connection]:
+        """A write transaction. Its first statement increments ``store_version``: that takes the
+        database's one write lock (PostgreSQL: the row's lock until commit; SQLite: the transaction
+        began IMMEDIATE), so what the transaction reads stays true until it commits."""
+        with self.engine.connect() as conn:
+            conn.execution_options(**{db_engine.WRITE: True})
+            with conn.begin():
+                conn.execute(_BUMP)
+                yield conn
         with self._lock:
-            self._db.execute("BEGIN IMMEDIATE")
-            try:
-                yield self._db
-            except BaseException:
-                self._db.execute("ROLLBACK")
-                raise
-            self._db.execute("COMMIT")
             self._writes += 1
+
+    def _rows(self, stmt: Select[Any]) -> list[RowMapping]:
+        with self.engine.connect() as conn:
+            return list(conn.execute(stmt).mappings())
 
     # -- measurements ---------------------------------------------------------------------
     def create_measurement(self, request: dict[str, Any], schedule_id: str | None = None) -> Measurement:
         mid = _new_id()
         with self._tx() as db:
-            seq = db.execute("SELECT COALESCE(MAX(seq), 0) + 1 FROM measurements").fetchone()[0]
+            seq = db.execute(_NEXT_SEQ).scalar_one()
             db.execute(
-                "INSERT INTO measurements (id, seq, created_at, state, request, schedule_id) VALUES (?, ?, ?, ?, ?, ?)",
-                (mid, seq, time.time(), "queued", json.dumps(request), schedule_id),
+                _INSERT_M,
+                {
+                    "id": mid,
+                    "seq": seq,
+                    "created_at": time.time(),
+                    "state": "queued",
+                    "request": json.dumps(request),
+                    "schedule_id": schedule_id,
+                    "rig_id": self.rig_id,
+                },
             )
         return self.get(mid)
 
     def get(self, mid: str) -> Measurement:
-        with self._lock:
-            row = self._db.execute("SELECT * FROM measurements WHERE id = ?", (mid,)).fetchone()
-        if row is None:
+        """The measurement ``mid`` of any rig."""
+        with self.engine.connect() as conn:
+            rows = list(conn.execute(_GET, {"mid": mid}).mappings())
+        if not rows:
             raise NotFound(f"no measurement {mid!r}")
-        return _measurement(row)
+        return _measurement(rows[0])
 
-    def list_measurements(self, state: str | None = None, limit: int = 100, offset: int = 0) -> list[Measurement]:
-        """Newest first."""
+    def list_measurements(
+        self, state: str | None = None, limit: int = 100, offset: int = 0, rig: str | None = None
+    ) -> list[Measurement]:
+        """Newest first, of every rig or of rig ``rig``."""
         if state is not None and state not in STATES:
             raise StoreError(f"unknown state {state!r} (expected one of {', '.join(STATES)})")
-        q = "SELECT * FROM measurements"
-        args: list[Any] = []
+        q = select(M)
         if state is not None:
-            q += " WHERE state = ?"
-            args.append(state)
-        q += " ORDER BY seq DESC LIMIT ? OFFSET ?"
-        args += [limit, offset]
-        with self._lock:
-            rows = self._db.execute(q, args).fetchall()
-        return [_measurement(r) for r in rows]
+            q = q.where(M.c.state == state)
+        if rig is not None:
+            q = q.where(M.c.rig_id == rig)
+        q = q.order_by(M.c.seq.desc()).limit(limit).offset(offset)
+        return [_measurement(r) for r in self._rows(q)]
 
     def queued(self) -> list[Measurement]:
-        """Queued measurements, oldest first (the order they run in)."""
-        with self._lock:
-            rows = self._db.execute("SELECT * FROM measurements WHERE state = 'queued' ORDER BY seq").fetchall()
-        return [_measurement(r) for r in rows]
+        """This rig's queued measurements, oldest first (the order they run in)."""
+        with self.engine.connect() as conn:
+            rows = conn.execute(_QUEUED, {"rig": self.rig_id}).mappings()
+            return [_measurement(r) for r in rows]
 
     def count_by_state(self) -> dict[str, int]:
-        with self._lock:
-            rows = self._db.execute("SELECT state, COUNT(*) FROM measurements GROUP BY state").fetchall()
+        """This rig's measurements per state."""
+        q = select(M.c.state, func.count()).where(M.c.rig_id == self.rig_id).group_by(M.c.state)
+        with self.engine.connect() as conn:
+            rows = conn.execute(q).all()
         out = dict.fromkeys(STATES, 0)
-        out.update({r[0]: r[1] for r in rows})
+        out.update({str(r[0]): int(r[1]) for r in rows})
         return out
 
-    def _transition(self, mid: str, allowed: tuple[str, ...], sets: str, args: tuple[Any, ...]) -> Measurement:
+    def _transition(self, mid: str, allowed: tuple[str, ...], values: dict[str, Any]) -> Measurement:
         with self._tx() as db:
-            row = db.execute("SELECT state FROM measurements WHERE id = ?", (mid,)).fetchone()
+            row = db.execute(_STATE_OF, {"m_id": mid}).first()
             if row is None:
                 raise NotFound(f"no measurement {mid!r}")
-            if row[0] not in allowed:
-                raise StoreError(f"measurement {mid} is {row[0]}")
-            db.execute(f"UPDATE measurements SET {sets} WHERE id = ?", (*args, mid))
+            if row.rig_id != self.rig_id:
+                raise StoreError(f"measurement {mid} belongs to rig {row.rig_id!r}, not to this one ({self.rig_id!r})")
+            if row.state not in allowed:
+                raise StoreError(f"measurement {mid} is {row.state}")
+            db.execute(_UPDATE_M, {"m_id": mid, **values})
         return self.get(mid)
 
     def start(self, mid: str) -> Measurement:
         return self._transition(
-            mid, ("queued",), "state = 'running', started_at = ?, progress = 0, message = ?", (time.time(), "starting")
+            mid, ("queued",), {"state": "running", "started_at": time.time(), "progress": 0.0, "message": "starting"}
         )
 
     def set_progress(self, mid: str, progress: float, message: str = "") -> None:
         with self._tx() as db:
             db.execute(
-                "UPDATE measurements SET progress = ?, message = ? WHERE id = ? AND state = 'running'",
-                (min(max(float(progress), 0.0), 1.0), message, mid),
+                _PROGRESS,
+                {
+                    "m_id": mid,
+                    "m_rig": self.rig_id,
+                    "progress": min(max(float(progress), 0.0), 1.0),
+                    "message": message,
+                },
             )
 
     def set_paths(
         self, mid: str, raw_path: str | None = None, cloud_path: str | None = None, raw_truncated: bool = False
     ) -> None:
-        with self._tx() as db:
-            if raw_path is not None:
-                db.execute(
-                    "UPDATE measurements SET raw_path = ?, raw_truncated = ? WHERE id = ?",
-                    (raw_path, int(raw_truncated), mid),
-                )
-            if cloud_path is not None:
-                db.execute("UPDATE measurements SET cloud_path = ? WHERE id = ?", (cloud_path, mid))
+        values: dict[str, Any] = {}
+        if raw_path is not None:
+            values.update(raw_path=raw_path, raw_truncated=int(raw_truncated))
+        if cloud_path is not None:
+            values.update(cloud_path=cloud_path)
+        if values:
+            with self._tx() as db:
+                db.execute(_UPDATE_MINE, {"m_id": mid, "m_rig": self.rig_id, **values})
 
     def finish(self, mid: str, result: dict[str, Any]) -> Measurement:
         return self._transition(
             mid,
             ("running",),
-            "state = 'done', finished_at = ?, progress = 1, message = 'done', result = ?",
-            (time.time(), json.dumps(result)),
+            {
+                "state": "done",
+                "finished_at": time.time(),
+                "progress": 1.0,
+                "message": "done",
+                "result": json.dumps(result),
+            },
         )
 
     def fail(self, mid: str, reason: str, result: dict[str, Any] | None = None) -> Measurement:
         return self._transition(
             mid,
             ("queued", "running"),
-            "state = 'failed', finished_at = ?, message = 'failed', error = ?, result = ?",
-            (time.time(), reason, json.dumps(result) if result is not None else None),
+            {
+                "state": "failed",
+                "finished_at": time.time(),
+                "message": "failed",
+                "error": reason,
+                "result": json.dumps(result) if result is not None else None,
+            },
         )
 
     def cancel(self, mid: str, reason: str = "cancelled by request") -> Measurement:
         return self._transition(
             mid,
             ("queued", "running"),
-            "state = 'cancelled', finished_at = ?, message = 'cancelled', error = ?",
-            (time.time(), reason),
+            {"state": "cancelled", "finished_at": time.time(), "message": "cancelled", "error": reason},
         )
 
     def interrupted(self) -> list[str]:
-        """Ids of the measurements left ``running`` (by a process that died, when read at start-up)."""
-        with self._lock:
-            return [r[0] for r in self._db.execute("SELECT id FROM measurements WHERE state = 'running' ORDER BY seq")]
+        """Ids of this rig's measurements left ``running`` (by a process that died, when read at start-up)."""
+        q = select(M.c.id).where(M.c.rig_id == self.rig_id, M.c.state == "running").order_by(M.c.seq)
+        with self.engine.connect() as conn:
+            return [str(r[0]) for r in conn.execute(q)]
 
     def fail_interrupted(
         self,
@@ -285,17 +346,23 @@ class Store:
         raw_truncated: bool = False,
     ) -> Measurement:
         """Mark one measurement a dead process left ``running`` as failed, with what is left of its data."""
-        return self._transition(
-            mid,
-            ("running",),
-            "state = 'failed', finished_at = ?, message = 'failed', error = ?, "
-            "raw_path = COALESCE(?, raw_path), cloud_path = COALESCE(?, cloud_path), raw_truncated = ?",
-            (time.time(), reason, raw_path, cloud_path, int(raw_truncated)),
-        )
+        values: dict[str, Any] = {
+            "state": "failed",
+            "finished_at": time.time(),
+            "message": "failed",
+            "error": reason,
+            "raw_truncated": int(raw_truncated),
+        }
+        if raw_path is not None:
+            values["raw_path"] = raw_path
+        if cloud_path is not None:
+            values["cloud_path"] = cloud_path
+        return self._transition(mid, ("running",), values)
 
     def recover_interrupted(self) -> list[str]:
-        """Mark measurements a dead process left ``running`` as failed; return their ids (the job
-        runner does this per measurement with :meth:`fail_interrupted`, after recovering the raw log)."""
+        """Mark this rig's measurements a dead process left ``running`` as failed; return their ids
+        (the job runner does this per measurement with :meth:`fail_interrupted`, after recovering
+        the raw log)."""
         ids = self.interrupted()
         for mid in ids:
             self.fail_interrupted(mid)
@@ -315,39 +382,52 @@ class Store:
         sid = _new_id()
         with self._tx() as db:
             db.execute(
-                "INSERT INTO schedules (id, created_at, name, cron, interval_s, template, next_run) "
-                "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                (sid, time.time(), name, cron, interval_s, json.dumps(template), next_run),
+                insert(S).values(
+                    id=sid,
+                    created_at=time.time(),
+                    name=name,
+                    cron=cron,
+                    interval_s=interval_s,
+                    template=json.dumps(template),
+                    next_run=next_run,
+                    rig_id=self.rig_id,
+                )
             )
         return self.get_schedule(sid)
 
     def get_schedule(self, sid: str) -> Schedule:
-        with self._lock:
-            row = self._db.execute("SELECT * FROM schedules WHERE id = ?", (sid,)).fetchone()
-        if row is None:
+        """The schedule ``sid`` of any rig."""
+        rows = self._rows(select(S).where(S.c.id == sid))
+        if not rows:
             raise NotFound(f"no schedule {sid!r}")
-        return _schedule(row)
+        return _schedule(rows[0])
 
-    def list_schedules(self) -> list[Schedule]:
-        with self._lock:
-            rows = self._db.execute("SELECT * FROM schedules ORDER BY created_at").fetchall()
-        return [_schedule(r) for r in rows]
+    def list_schedules(self, rig: str | None = None) -> list[Schedule]:
+        """Oldest first, of every rig or of rig ``rig`` (the scheduler runs its own rig's)."""
+        q = select(S)
+        if rig is not None:
+            q = q.where(S.c.rig_id == rig)
+        return [_schedule(r) for r in self._rows(q.order_by(S.c.created_at))]
 
     def delete_schedule(self, sid: str) -> None:
         with self._tx() as db:
-            cur = db.execute("DELETE FROM schedules WHERE id = ?", (sid,))
-            if cur.rowcount == 0:
+            row = db.execute(select(S.c.rig_id).where(S.c.id == sid)).first()
+            if row is None:
                 raise NotFound(f"no schedule {sid!r}")
+            if row.rig_id != self.rig_id:
+                raise StoreError(f"schedule {sid} belongs to rig {row.rig_id!r}, not to this one ({self.rig_id!r})")
+            db.execute(S.delete().where(S.c.id == sid))
 
     def mark_schedule_run(self, sid: str, last_run: float, next_run: float | None, measurement_id: str | None) -> None:
         with self._tx() as db:
             db.execute(
-                "UPDATE schedules SET last_run = ?, next_run = ?, last_measurement_id = ? WHERE id = ?",
-                (last_run, next_run, measurement_id, sid),
+                update(S)
+                .where(S.c.id == sid, S.c.rig_id == self.rig_id)
+                .values(last_run=last_run, next_run=next_run, last_measurement_id=measurement_id)
             )
 
 
-def _measurement(row: sqlite3.Row) -> Measurement:
+def _measurement(row: RowMapping) -> Measurement:
     return Measurement(
         id=row["id"],
         created_at=row["created_at"],
@@ -363,10 +443,11 @@ def _measurement(row: sqlite3.Row) -> Measurement:
         cloud_path=row["cloud_path"],
         schedule_id=row["schedule_id"],
         raw_truncated=bool(row["raw_truncated"]),
+        rig_id=row["rig_id"],
     )
 
 
-def _schedule(row: sqlite3.Row) -> Schedule:
+def _schedule(row: RowMapping) -> Schedule:
     return Schedule(
         id=row["id"],
         created_at=row["created_at"],
@@ -378,4 +459,5 @@ def _schedule(row: sqlite3.Row) -> Schedule:
         next_run=row["next_run"],
         last_run=row["last_run"],
         last_measurement_id=row["last_measurement_id"],
+        rig_id=row["rig_id"],
     )

@@ -12,7 +12,7 @@ from typing import Any
 
 from fastapi.responses import JSONResponse
 
-from service.calstore import CalibrationStore, engine_for
+from service.calstore import CalibrationStore
 from service.config import RigConfig
 from service.jobs import JobContext, JobRunner, MeasureFn, Metrics, ProgressHub
 from service.models import MeasurementRequest, planned_duration_s, resolve_sweep
@@ -87,15 +87,15 @@ class Service:
         rig_reset: RigInfo | None = None,
     ) -> None:
         self.config = config
-        self.store = store or Store(config.storage.db_path)
-        self.calibrations = CalibrationStore(engine_for(self.store))
-        """Rig calibrations (``/api/v1/calibrations``); the active one of ``config.name`` is used by
+        self.store = store or Store(config.storage.db_url, config.storage.rig_id)
+        self.calibrations = CalibrationStore(self.store.engine)
+        """Rig calibrations (``/api/v1/calibrations``); the active one of the store's ``rig_id`` is used by
         every measurement."""
         self.metrics = Metrics()
         self.hub = ProgressHub()
 
         def measure_calibrated(ctx: JobContext) -> dict[str, Any]:
-            active = self.calibrations.active(config.name)
+            active = self.calibrations.active(self.store.rig_id)
             ctx.calibration = None if active is None else active.payload()
             return measure(ctx)
 

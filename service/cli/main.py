@@ -31,12 +31,13 @@ COMMANDS: dict[tuple[str, ...], str] = {
     ("serve",): "service.cli.serve",
     ("measure",): "service.cli.measure",
     ("replay",): "service.cli.replay",
+    ("db", "upgrade"): "service.cli.db",
     ("report",): "service.cli.report",
     ("sim", "scanner"): "service.cli.sim_scanner",
     ("sim", "motor"): "service.cli.sim_motor",
 }
 
-GROUP_HELP = {"sim": "run a simulated device server (scanner or motor)"}
+GROUP_HELP = {"sim": "run a simulated device server (scanner or motor)", "db": "the result database"}
 
 
 class _Formatter(argparse.HelpFormatter):

@@ -110,6 +110,7 @@ def run(args: argparse.Namespace) -> int:
 
     from service.api import create_app
     from service.config import load_config
+    from service.db.engine import shown as shown_url
     from service.errors import ServiceError
     from service.rig import build_service
 
@@ -132,6 +133,7 @@ def run(args: argparse.Namespace) -> int:
         app = create_app(svc)
         where = "simulated rig" if cfg.is_sim else f"scanner {rig.scanner_url}, motor {rig.motor_url}"
         print(f"lrms serve: {cfg.name} ({where}); data in {cfg.storage.dir}", flush=True)
+        print(f"lrms serve: results in {shown_url(cfg.storage.db_url)} as rig id {cfg.storage.rig_id}", flush=True)
         print(f"lrms serve: {auth_summary(cfg)}", flush=True)
         # bound and listening before the address is announced: with --port 0 the line below is how
         # a caller learns the port (connections made after it wait in the backlog until uvicorn runs)

@@ -36,7 +36,7 @@ class CalibrationSummary(BaseModel):
     created: str = Field(description="when it was stored (UTC, ISO 8601)")
     name: str
     comment: str
-    rig_id: str | None = Field(description="the rig it belongs to (the service's rig name by default)")
+    rig_id: str | None = Field(description="the rig it belongs to (by default the service's `[storage] rig_id`)")
     active: bool = Field(description="the rig's measurements use it")
     calibrated: str = Field(description="when the calibration was computed (its own date)")
     software_version: str
@@ -61,7 +61,7 @@ def _out(c: StoredCalibration) -> CalibrationOut:
 
 
 def _rig(service: Service, rig_id: str | None) -> str:
-    return service.config.name if rig_id is None else rig_id
+    return service.store.rig_id if rig_id is None else rig_id
 
 
 RigId = Annotated[

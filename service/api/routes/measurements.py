@@ -15,6 +15,7 @@ from pydantic import TypeAdapter
 from service.api.core import JsonBytes, Service
 from service.api.deps import OPERATE, READ, READ_RESPONSES, ServiceDep
 from service.api.errors import responses
+from service.db import RIG_ID_LENGTH, RIG_ID_RE
 from service.errors import RequestFieldError
 from service.models import MeasurementOut, MeasurementRequest, resolve_sweep
 from service.store import FINAL_STATES, Measurement
@@ -30,6 +31,15 @@ MAX_LIMIT = 1000
 ID_MAX_LENGTH = 64
 
 MeasurementId = Annotated[str, Path(min_length=1, max_length=ID_MAX_LENGTH, description="measurement id")]
+RigFilter = Annotated[
+    str | None,
+    Query(
+        min_length=1,
+        max_length=RIG_ID_LENGTH,
+        pattern=RIG_ID_RE.pattern,
+        description="only this rig's (its [storage] rig_id); default: every rig sharing the database",
+    ),
+]
 
 
 def measurement_out(m: Measurement) -> MeasurementOut:
@@ -48,6 +58,7 @@ def measurement_out(m: Measurement) -> MeasurementOut:
         raw_truncated=m.raw_truncated,
         has_cloud=m.cloud_path is not None,
         schedule_id=m.schedule_id,
+        rig_id=m.rig_id,
     )
 
 
@@ -78,14 +89,15 @@ async def list_measurements(
     state: Annotated[Literal["queued", "running", "done", "failed", "cancelled"] | None, Query()] = None,
     limit: Annotated[int, Query(ge=1, le=MAX_LIMIT, description="page size")] = 100,
     offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0,
+    rig: RigFilter = None,
 ) -> Response:
-    """Newest first."""
+    """Newest first, of every rig whose service shares this database (``rig`` picks one)."""
 
     def build() -> bytes:
-        ms = service.store.list_measurements(state, limit, offset)
+        ms = service.store.list_measurements(state, limit, offset, rig=rig)
         return _MEASUREMENTS.dump_json([measurement_out(m) for m in ms])
 
-    return JsonBytes(service.cache.get(f"list:{state}:{limit}:{offset}", build))
+    return JsonBytes(service.cache.get(f"list:{state}:{limit}:{offset}:{rig}", build))
 
 
 @router.get("/{mid}", response_model=MeasurementOut, responses=responses(404, 422))

@@ -10,7 +10,7 @@ from pydantic import TypeAdapter
 from service.api.core import JsonBytes
 from service.api.deps import ADMIN, READ, READ_RESPONSES, ServiceDep
 from service.api.errors import responses
-from service.api.routes.measurements import ID_MAX_LENGTH
+from service.api.routes.measurements import ID_MAX_LENGTH, RigFilter
 from service.errors import RequestFieldError
 from service.models import ScheduleOut, ScheduleRequest, check_schedule
 from service.store import Schedule
@@ -31,6 +31,7 @@ def schedule_out(s: Schedule) -> ScheduleOut:
         next_run=s.next_run,
         last_run=s.last_run,
         last_measurement_id=s.last_measurement_id,
+        rig_id=s.rig_id,
     )
 
 
@@ -51,12 +52,15 @@ def create_schedule(req: ScheduleRequest, service: ServiceDep) -> ScheduleOut:
     return schedule_out(service.scheduler.add(req))
 
 
-@router.get("", response_model=list[ScheduleOut])
-async def list_schedules(service: ServiceDep) -> Response:
-    def build() -> bytes:
-        return _SCHEDULES.dump_json([schedule_out(s) for s in service.store.list_schedules()])
+@router.get("", response_model=list[ScheduleOut], responses=responses(422))
+async def list_schedules(service: ServiceDep, rig: RigFilter = None) -> Response:
+    """Oldest first, of every rig whose service shares this database (``rig`` picks one; each
+    rig's service runs its own schedules only)."""
 
-    return JsonBytes(service.cache.get("schedules", build))
+    def build() -> bytes:
+        return _SCHEDULES.dump_json([schedule_out(s) for s in service.store.list_schedules(rig=rig)])
+
+    return JsonBytes(service.cache.get(f"schedules:{rig}", build))
 
 
 @router.get("/{sid}", response_model=ScheduleOut, responses=responses(404, 422))
@@ -69,7 +73,7 @@ async def get_schedule(sid: ScheduleId, service: ServiceDep) -> ScheduleOut:
     status_code=204,
     dependencies=ADMIN,
     response_class=Response,
-    responses=responses(401, 403, 404, 413, 422),
+    responses=responses(401, 403, 404, 409, 413, 422),
 )
 def delete_schedule(sid: ScheduleId, service: ServiceDep) -> Response:
     service.store.delete_schedule(sid)
