@@ -1,7 +1,8 @@
 """Fits after a sweep: the mapped cloud, a region of interest, and the model the request names.
 
 The cylinder is fitted in the rig frame with every point's own beam (origin and direction from
-its alpha and beta, not re-derived from the point), so the line-of-sight fit of
+its alpha, beta and motor speed by the rig model the cloud was mapped with, not re-derived from
+the point), so the line-of-sight fit of
 :func:`lrms.cylinder.fit_cylinder` sees exactly what the rig measured. The uncertainty is reported
 three ways (:mod:`lrms.uncertainty`): the seed's critical-point interval at ellipsoid factor ``k``,
 the GUM standard uncertainty from the fit's covariance, and optionally a Monte Carlo interval; and
@@ -264,13 +265,15 @@ def fit_cylinder_result(
     l = mapped.ranges[keep]
     alpha = mapped.alpha[keep]
     beta = mapped.beta[keep]
-    origins, dirs = kinematics.beam_rays(alpha, beta, cal.p)
+    # every beam by the rig model the cloud was mapped with (RigModel: tilts, zeros, k0, k1, backlash, ...),
+    # so that origins + ranges * dirs are the mapped points; nominal: Eq. 1's beams bit for bit
+    origins, dirs, ranges = mapped.beam_rays(keep)
     lateral = np.hypot(l * nm.sigma_alpha, (l * np.sin(alpha) + cal.p) * nm.sigma_beta)
     rays = Rays(
         origins=origins,
         dirs=dirs,
-        ranges=l,
-        sigma_l=np.full(l.shape, nm.sigma_l),
+        ranges=ranges,
+        sigma_l=np.full(l.shape, nm.sigma_l * (1.0 + mapped.rig.k1)),
         sigma_perp=np.maximum(lateral, 1e-7),
     )
     seed = request.options.seed if request.options.seed is not None else 0
