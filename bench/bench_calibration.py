@@ -16,7 +16,19 @@ mapped with the calibration (after). The rotation about the shaft (motor zero pl
 is the rig's pose, not in the cloud: "after" takes it from the truth, as a levelling of the rig
 would.
 
+Artefact layouts (``--layout``; docs/calibration.md, "What limits k1 and the motor scale"):
+
+* ``room``: the ``room-spheres`` scene as it is (a 2 m sphere bar from 1.5 to 3.5 m).
+* ``long-bar``: the bar's two 0.25 m spheres moved to 1.2 and 5.2 m on one line of sight (a 4 m
+  bar running straight away from the rig); everything else as ``room``.
+* ``network``: ``room`` with every centre-to-centre distance of the seven spheres known (21
+  distances, as a laser tracker or a CMM measures a sphere network), each to ``--u-distance``.
+
+``--sweep-deg`` is the motor span, centred on 0 (180: -90..90; 340: -170..170, where most of
+the room is seen twice, from both halves of the 270 deg scan).
+
     python -m bench.bench_calibration [--runs 20] [--speed 5] [--sweeps 1] [--plane-points 20000] [--seed 0]
+        [--layout room|long-bar|network] [--sweep-deg 180] [--u-distance 3e-5] [--no-part]
 """
 
 from __future__ import annotations
@@ -34,13 +46,15 @@ from sim.scene import (
     SEED003_AXIS_DIRECTION,
     SEED003_AXIS_POINT,
     SEED003_DIAMETER,
+    Scene,
     SensorModel,
+    Sphere,
     cast_beams,
     continuous_sweep_cloud,
     get_scene,
     lms1xx_device_angles,
 )
-from sim.scene.library import room_spheres_artefact
+from sim.scene.library import ROOM_SPHERE_BAR, ROOM_SPHERES, room_spheres_artefact
 
 D = np.deg2rad
 
@@ -54,10 +68,52 @@ def draw_rig(rng: np.random.Generator) -> RigModel:
     )  # fmt: skip
 
 
-def calibration_sweep(rig: RigModel, speed_deg_s: float, seed: int) -> Observations:
+#: ``long-bar``: the bar's spheres (4 and 5) at 1.2 and 5.2 m, 10 deg apart as seen from the rig
+#: (on one line of sight the near sphere would hide the far one): 3.9 m of the bar along the line
+#: of sight; the far sphere 0.5 m from the far wall and 0.6 m above the floor
+LONG_BAR_CENTRES = (
+    1.2 * np.array([0.15, 0.98, -0.13]) / np.linalg.norm([0.15, 0.98, -0.13]),
+    5.2 * np.array([0.32, 0.94, -0.13]) / np.linalg.norm([0.32, 0.94, -0.13]),
+)
+
+
+def layout(name: str, u_distance_m: float) -> tuple[Scene, Artefact]:
+    """The calibration scene and its artefact for ``--layout`` (see the module docstring)."""
+    centres = [np.asarray(c, dtype=np.float64) for c, _ in ROOM_SPHERES]
+    art = room_spheres_artefact()
+    if name == "room":
+        return get_scene("room-spheres"), Artefact.from_dict(art)
+    scene = get_scene("room-spheres")
+    if name == "long-bar":
+        a, b, _ = ROOM_SPHERE_BAR
+        centres[a], centres[b] = LONG_BAR_CENTRES
+        kept = [o for o in scene.objects if o.name not in (f"sphere{a}", f"sphere{b}")]
+        scene = Scene("room-long-bar")
+        for o in kept:
+            scene.add(o.shape, o.remission, o.name)
+        for i in (a, b):
+            scene.add(Sphere(centres[i], ROOM_SPHERES[i][1] / 2), remission=0.8, name=f"sphere{i}")
+        dist = float(np.linalg.norm(centres[b] - centres[a]))
+        art["distances_m"] = [{"a": a, "b": b, "distance_m": dist, "u_distance_m": u_distance_m}]
+    elif name == "network":
+        n = len(centres)
+        art["distances_m"] = [
+            {"a": i, "b": j, "distance_m": float(np.linalg.norm(centres[j] - centres[i])), "u_distance_m": u_distance_m}
+            for i in range(n)
+            for j in range(i + 1, n)
+        ]
+    else:
+        raise SystemExit(f"unknown layout {name!r}")
+    return scene, Artefact.from_dict(art)
+
+
+def calibration_sweep(
+    rig: RigModel, speed_deg_s: float, seed: int, scene: Scene, span_deg: float = 180.0
+) -> Observations:
     cal = RigCalibration(model=rig)
+    half = D(span_deg / 2)
     _, s = continuous_sweep_cloud(
-        get_scene("room-spheres"), cal, SensorModel(), D(-90), D(90), D(speed_deg_s), rng=np.random.default_rng(seed)
+        scene, cal, SensorModel(), -half, half, D(speed_deg_s), rng=np.random.default_rng(seed)
     )
     v = s.valid
     return Observations.from_raw(s.ranges[v], cal.alpha(s.device_angle[v]), cal.beta(s.motor_angle[v]))
@@ -94,9 +150,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sweeps", type=int, default=1, help="calibration sweeps per run (independent noise)")
     ap.add_argument("--plane-points", type=int, default=20000, help="beams used per plane")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--layout", choices=("room", "long-bar", "network"), default="room")
+    ap.add_argument("--sweep-deg", type=float, default=180.0, help="motor span of a sweep, centred on 0")
+    ap.add_argument("--u-distance", type=float, default=3e-5, help="u of the long bar's / network's distances, m")
+    ap.add_argument("--no-part", action="store_true", help="skip the seed 003 part before / after")
     args = ap.parse_args(argv)
     rng = np.random.default_rng(args.seed)
-    art = Artefact.from_dict(room_spheres_artefact())
+    scene, art = layout(args.layout, args.u_distance)
     opts = CalibrationOptions(adjust=AdjustOptions(max_plane_points=args.plane_points))
     errs: dict[str, list[float]] = {}
     stds: dict[str, list[float]] = {}
@@ -104,7 +164,10 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     for run in range(args.runs):
         rig = draw_rig(rng)
-        sweeps = [calibration_sweep(rig, args.speed, args.seed * 100_000 + 100 * run + k) for k in range(args.sweeps)]
+        sweeps = [
+            calibration_sweep(rig, args.speed, args.seed * 100_000 + 100 * run + k, scene, args.sweep_deg)
+            for k in range(args.sweeps)
+        ]
         res = calibrate(sweeps, art, options=opts)
         truth = rig.canonical()
         std = res.std()
@@ -116,9 +179,13 @@ def main(argv: list[str] | None = None) -> int:
             worst = (name, z) if z > worst[1] else worst
         posed = dataclasses.replace(res.model, beta_zero=truth.beta_zero)  # the rig's pose about the shaft
         seed = 10_000 + run
-        d_ideal, a_ideal = part_fit(RigModel(), RigModel(), seed)
-        d_before, a_before = part_fit(rig, RigModel(), seed)
-        d_after, a_after = part_fit(rig, posed, seed)
+        if args.no_part:
+            d_ideal = d_before = d_after = float("nan")
+            a_ideal = a_before = a_after = np.array([0.0, 0.0, 1.0])
+        else:
+            d_ideal, a_ideal = part_fit(RigModel(), RigModel(), seed)
+            d_before, a_before = part_fit(rig, RigModel(), seed)
+            d_after, a_after = part_fit(rig, posed, seed)
         rows.append(
             (d_before - d_ideal, angle_deg(a_before, a_ideal), d_after - d_ideal, angle_deg(a_after, a_ideal),
              res.residuals["variance_factor"])
@@ -131,8 +198,9 @@ def main(argv: list[str] | None = None) -> int:
         )
     elapsed = time.perf_counter() - t0
     print(
-        f"\n{args.runs} runs in {elapsed:.0f} s; {args.sweeps} calibration sweep(s) per run at {args.speed} deg/s, "
-        f"-90..90 deg, <= {args.plane_points} beams per plane; ideal thin beam, sigma_l = 11.67 mm"
+        f"\n{args.runs} runs in {elapsed:.0f} s; layout {args.layout}; {args.sweeps} calibration sweep(s) per run at "
+        f"{args.speed} deg/s, {-args.sweep_deg / 2:g}..{args.sweep_deg / 2:g} deg, <= {args.plane_points} beams per "
+        f"plane; ideal thin beam, sigma_l = 11.67 mm"
     )
     print("\nparameter recovery (estimated - canonical truth), reported std, goal:")
     print(

@@ -1,7 +1,8 @@
 """Fits after a sweep: the mapped cloud, a region of interest, and the model the request names.
 
 The cylinder is fitted in the rig frame with every point's own beam (origin and direction from
-its alpha and beta, not re-derived from the point), so the line-of-sight fit of
+its alpha, beta and motor speed by the rig model the cloud was mapped with, not re-derived from
+the point), so the line-of-sight fit of
 :func:`lrms.cylinder.fit_cylinder` sees exactly what the rig measured. The uncertainty is reported
 three ways (:mod:`lrms.uncertainty`): the seed's critical-point interval at ellipsoid factor ``k``,
 the GUM standard uncertainty from the fit's covariance, and optionally a Monte Carlo interval; and
@@ -294,22 +295,27 @@ def fit_cylinder_result(
     from lrms.cylinder import Rays
 
     cal = rig_kinematics(config, calibration)
-    rig = cal.rig
     nm = noise_model(config)
     l = mapped.ranges[keep]
     alpha = mapped.alpha[keep]
     beta = mapped.beta[keep]
     sweep = resolve_sweep(request.sweep, config)
     speed = 0.0 if sweep.mode == "step" else float(np.deg2rad(sweep.speed_deg_s))  # step-and-scan: at rest
-    # the motor speed of every beam (the model's backlash and time-offset terms): the sweep's, signed
-    omega = np.full(l.shape, speed * (1.0 if sweep.stop_deg >= sweep.start_deg else -1.0))
-    origins, dirs = rig.rays(alpha, beta, omega)
+    # every beam by the rig model the cloud was mapped with (RigModel: tilts, zeros, k0, k1, backlash, ...),
+    # so that origins + ranges * dirs are the mapped points; nominal: Eq. 1's beams bit for bit
+    origins, dirs, ranges = mapped.beam_rays(keep)
+    # the motor speed of every beam (backlash and time-offset terms of the calibration's budget row):
+    # the mapped one, else the sweep's, signed
+    if mapped.motor_speed is not None:
+        omega = mapped.motor_speed[keep]
+    else:
+        omega = np.full(l.shape, speed * (1.0 if sweep.stop_deg >= sweep.start_deg else -1.0))
     lateral = np.hypot(l * nm.sigma_alpha, (l * np.sin(alpha) + cal.p) * nm.sigma_beta)
     rays = Rays(
         origins=origins,
         dirs=dirs,
-        ranges=rig.geometric_range(l),
-        sigma_l=np.full(l.shape, nm.sigma_l),
+        ranges=ranges,
+        sigma_l=np.full(l.shape, nm.sigma_l * (1.0 + mapped.rig.k1)),
         sigma_perp=np.maximum(lateral, 1e-7),
     )
     seed = request.options.seed if request.options.seed is not None else 0

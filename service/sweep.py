@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from lrms.kinematics import RigCalibration, forward
+from lrms.kinematics import RigCalibration, RigModel
 from service.errors import ServiceError
 from service.mcaplog import foxglove_time
 from service.models import APPROACH_SPEED_DEG_S, run_up_deg, step_dwell_s
@@ -175,6 +175,27 @@ def interpolate_angle(t: ArrayLike, sample_t: ArrayLike, sample_angle: ArrayLike
     return out
 
 
+def interpolate_speed(t: ArrayLike, sample_t: ArrayLike, sample_angle: ArrayLike) -> FloatArray:
+    """The motor speed (rad/s) at times ``t``: the slope of the sampled angle's segment around each
+    time, i.e. the derivative of :func:`interpolate_angle`'s polyline. NaN outside the samples' span.
+
+    Its sign is the direction of motion (the rig model's backlash term); at rest between two equal
+    samples it is 0, and the model applies no backlash there.
+    """
+    tt = np.asarray(t, dtype=np.float64)
+    st = np.asarray(sample_t, dtype=np.float64)
+    sa = np.asarray(sample_angle, dtype=np.float64)
+    if st.ndim != 1 or st.shape != sa.shape or st.size < 2:
+        raise SweepError("need at least two motor samples to interpolate the motor speed")
+    if np.any(np.diff(st) <= 0):
+        raise SweepError("motor sample times must increase strictly")
+    slope = np.diff(sa) / np.diff(st)
+    seg = np.clip(np.searchsorted(st, tt, side="right") - 1, 0, st.size - 2)
+    out = slope[seg]
+    out[(tt < st[0]) | (tt > st[-1]) | np.isnan(tt)] = np.nan
+    return np.asarray(out, dtype=np.float64)
+
+
 def motor_timing_jitter(
     t_s: ArrayLike,
     angle: ArrayLike,
@@ -232,10 +253,24 @@ class MappedSweep:
     beams_outside_sweep: int
     #: the motor samples' timing scatter in the sweep, measured (:func:`motor_timing_jitter`); None: not measurable
     motor_timing_jitter_s: float | None = None
+    #: the motor speed at each beam (rad/s, :func:`interpolate_speed`); None: not known
+    motor_speed: FloatArray | None = None
+    #: the rig model the points were mapped with (``RigCalibration.rig``)
+    rig: RigModel = field(default_factory=RigModel)
 
     @property
     def rig_points(self) -> FloatArray:
-        return forward(self.ranges, self.alpha, self.beta)
+        """The points in the rig frame (the same model as :attr:`points`, without ``world_from_rig``)."""
+        return self.rig.forward(self.ranges, self.alpha, self.beta, self.motor_speed)
+
+    def beam_rays(self, keep: NDArray[np.bool_] | None = None) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Rig-frame beam origins and unit directions and the geometric ranges (``k0 + (1 + k1) l``)
+        of the beams (``keep``: a mask or index of them), by the model the points were mapped with:
+        ``origins + ranges * dirs`` are :attr:`rig_points`."""
+        sel = slice(None) if keep is None else keep
+        speed = None if self.motor_speed is None else self.motor_speed[sel]
+        o, d = self.rig.rays(self.alpha[sel], self.beta[sel], speed)
+        return o, d, self.rig.geometric_range(self.ranges[sel])
 
     def stats(self) -> dict[str, int]:
         return {
@@ -260,8 +295,14 @@ def map_sweep(
 ) -> MappedSweep:
     """Map scans to world points, each beam with the motor angle at its own instant.
 
-    ``beta_window`` (rad, either order) keeps only beams whose interpolated beta lies inside it
-    (the constant-velocity part of a sweep).
+    The points come from ``calibration.rig`` (:class:`lrms.kinematics.RigModel`: range offset and
+    scale, optical centre p and q, the scan plane's tilts, the angular zeros, motor scale, backlash
+    and the scan/motor time offset), vectorised over every beam; the backlash and time offset act
+    through the motor speed at each beam (:func:`interpolate_speed`, the slope of the motor
+    samples around it: its sign is the direction of motion). The nominal model is Eq. 1 bit for
+    bit. ``beta_window`` (rad, either order) keeps only beams whose interpolated beta (the
+    encoder's plane angle, before the model's corrections) lies inside it (the constant-velocity
+    part of a sweep).
     """
     if not scans:
         raise SweepError("no scans to map")
@@ -299,7 +340,9 @@ def map_sweep(
             outside = keep & ((beta < lo) | (beta > hi))
         keep &= ~outside
     alpha = calibration.alpha(a0[scan_idx[keep]] + beam[keep] * da[scan_idx[keep]])
-    pts = forward(ranges[keep], alpha, beta[keep], calibration.p)
+    speed = interpolate_speed(host_rel[keep], motor_rel, ma)
+    rig = calibration.rig
+    pts = rig.forward(ranges[keep], alpha, beta[keep], speed)
     if not np.array_equal(calibration.world_from_rig, np.eye(4)):
         pts = calibration.to_world(pts)
     return MappedSweep(
@@ -323,6 +366,8 @@ def map_sweep(
             else (float(calibration.motor_angle(beta_window[0])), float(calibration.motor_angle(beta_window[1]))),
             (float(host_rel[keep].min()), float(host_rel[keep].max())) if np.any(keep) else None,
         ),
+        motor_speed=speed,
+        rig=rig,
     )
 
 

@@ -15,6 +15,7 @@ artefact's centre distances where given.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -165,11 +166,66 @@ def detect_spheres(
     return _assign(found, artefact, opts)
 
 
+#: The most joint assignments of found to artefact spheres :func:`_assign` tries before it falls
+#: back to matching one distance at a time (7 spheres of one diameter: 5040).
+MAX_ASSIGNMENTS = 50_000
+
+
 def _assign(
     found: list[tuple[IntArray, FloatArray, float, float]], artefact: Artefact, opts: DetectOptions
 ) -> list[SphereSeg]:
     """Give each found sphere an artefact sphere of its diameter; the centre distances decide
-    between spheres of equal diameter (the pair whose distance matches is taken)."""
+    between spheres of equal diameter.
+
+    Every assignment (found spheres of one diameter to the artefact's of that diameter, all
+    groups jointly; at most :data:`MAX_ASSIGNMENTS`) is scored by its distances: each given
+    distance costs its misfit, capped at ``distance_tolerance_m``, or that cap when one of its
+    spheres is unassigned. The cheapest is taken (ties: the found order). So a sphere network
+    (many distances sharing spheres) is matched as a whole, not pair by pair.
+    """
+    diam = np.array([s.diameter_m for s in artefact.spheres])
+    groups: list[tuple[list[int], list[int]]] = []  # (artefact indices, found indices) per diameter
+    for k in range(len(diam)):
+        if any(k in g[0] for g in groups):
+            continue
+        art = [j for j in range(len(diam)) if np.isclose(diam[j], diam[k])]
+        fnd = [i for i, f in enumerate(found) if np.isclose(2 * f[2], diam[k])]
+        groups.append((art, fnd))
+    n_total = 1
+    for art, fnd in groups:
+        hi, lo = max(len(art), len(fnd)), min(len(art), len(fnd))
+        n_total *= int(np.prod(np.arange(hi - lo + 1, hi + 1)))
+    if n_total > MAX_ASSIGNMENTS or not artefact.distances:
+        return _assign_pairwise(found, artefact, opts)
+    tol = opts.distance_tolerance_m
+    centres = np.array([f[1] for f in found])
+    best: tuple[float, dict[int, int]] | None = None
+    per_group = [
+        [dict(zip(perm, fnd, strict=True)) for perm in itertools.permutations(art, len(fnd))]
+        if len(fnd) <= len(art)
+        else [dict(zip(art, perm, strict=True)) for perm in itertools.permutations(fnd, len(art))]
+        for art, fnd in groups
+    ]
+    for combo in itertools.product(*per_group):
+        owner = {a: f for part in combo for a, f in part.items()}
+        cost = 0.0
+        for d in artefact.distances:
+            if d.a in owner and d.b in owner:
+                err = abs(float(np.linalg.norm(centres[owner[d.a]] - centres[owner[d.b]])) - d.distance_m)
+                cost += min(err, tol)
+            else:
+                cost += tol
+        if best is None or cost < best[0] - 1e-12:
+            best = (cost, owner)
+    assert best is not None
+    return [SphereSeg(found[i][0], found[i][1], found[i][2], k) for k, i in sorted(best[1].items())]
+
+
+def _assign_pairwise(
+    found: list[tuple[IntArray, FloatArray, float, float]], artefact: Artefact, opts: DetectOptions
+) -> list[SphereSeg]:
+    """Too many spheres for :func:`_assign`'s joint search: each distance, one at a time, takes the
+    pair of found spheres that matches it best; the rest go in the found order."""
     diam = np.array([s.diameter_m for s in artefact.spheres])
     owner: dict[int, int] = {}  # artefact index -> found index
     used: set[int] = set()

@@ -242,3 +242,38 @@ def test_two_sweeps_show_one_combination_of_backlash_and_time_offset() -> None:
     assert "three different signed speeds" in res.identifiability.held["time_offset"]
     combination = rig.backlash - D(30.0) * rig.time_offset  # what a free backlash alone must carry
     assert abs(res.model.backlash - combination) < 3 * res.std()["backlash"]
+
+
+def test_a_sphere_network_is_matched_as_a_whole() -> None:
+    """Six equal spheres found in an order unrelated to the artefact's, with every centre distance
+    given (a network measured by a tracker): each found sphere gets its own artefact index. Matching
+    one distance at a time (the first pair that fits, the rest in found order) cannot do this."""
+    from lrms.calibration.detect import DetectOptions, detect_spheres
+
+    rng = np.random.default_rng(4)
+    centres = np.array([[0.6, 1.5, -0.3], [-0.8, 2.4, 0.45], [1.6, 3.4, -0.7], [-0.3, 4.6, 0.25],
+                        [1.5, -0.9, 0.3], [0.2, 2.0, 1.0]])  # fmt: skip
+    order = [3, 0, 5, 1, 4, 2]  # the order the clusters come in
+    clouds = []
+    for c in centres[order]:
+        v = rng.normal(size=(300, 3))
+        v /= np.linalg.norm(v, axis=1)[:, None]
+        v = v[(v @ -c) > 0]  # the half facing the rig at the origin
+        clouds.append(c + 0.1 * v)
+    pts = np.concatenate(clouds)
+    n = len(centres)
+    art = Artefact.from_dict(
+        {
+            "planes": True,
+            "spheres": [{"diameter_m": 0.2}] * n,
+            "distances_m": [
+                {"a": i, "b": j, "distance_m": float(np.linalg.norm(centres[i] - centres[j]))}
+                for i in range(n)
+                for j in range(i + 1, n)
+            ],
+        }
+    )
+    segs = detect_spheres(pts, np.arange(len(pts)), art, DetectOptions())
+    assert len(segs) == n
+    for s in segs:
+        assert np.allclose(s.center, centres[s.artefact_index], atol=1e-6), (s.artefact_index, s.center)

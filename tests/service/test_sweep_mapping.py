@@ -158,3 +158,96 @@ def test_motor_timing_jitter_reads_the_time_stamps_scatter_from_a_constant_speed
     assert motor_timing_jitter(t_sync, np.zeros_like(t_sync), (-1.0, 1.0)) is None
     assert motor_timing_jitter(t_sync, speed * t_sync, None) is None
     assert motor_timing_jitter(t_sync[:10], speed * t_sync[:10], (-1.0, 1.0)) is None
+
+
+def test_the_nominal_rig_model_maps_bit_for_bit_as_eq1() -> None:
+    """A nominal ``RigModel`` (p given or not, world pose or not) gives exactly Eq. 1's points and beams."""
+    from lrms.kinematics import RigModel, beam_rays
+
+    rng = np.random.default_rng(8)
+    scans, clock, mt_ns, mpos, _ = _sweep(rng, n_scans=20)
+    pose = np.eye(4)
+    pose[:3, 3] = [0.5, -1.0, 2.0]
+    for calib in (
+        RigCalibration(),
+        RigCalibration(p=0.12),
+        RigCalibration(model=RigModel(p=0.12)),
+        RigCalibration(p=0.12, world_from_rig=pose),
+    ):
+        m = map_sweep(scans, mt_ns, mpos, clock, calib)
+        assert m.rig.is_nominal() and m.rig.p == calib.p
+        rig_pts = forward(m.ranges, m.alpha, m.beta, calib.p)
+        assert np.array_equal(m.rig_points, rig_pts)
+        posed = not np.array_equal(calib.world_from_rig, np.eye(4))
+        assert np.array_equal(m.points, calib.to_world(rig_pts) if posed else rig_pts)
+        o, d, ranges = m.beam_rays()
+        o_eq1, d_eq1 = beam_rays(m.alpha, m.beta, calib.p)
+        assert np.array_equal(o, o_eq1) and np.array_equal(d, d_eq1) and np.array_equal(ranges, m.ranges)
+
+
+def _full_model() -> dict[str, float]:
+    return {
+        "p_m": 0.103,
+        "range_offset_m": 0.015,
+        "range_scale_ppm": 800.0,
+        "q_m": -0.004,
+        "tilt_x_deg": 0.2,
+        "tilt_y_deg": -0.15,
+        "alpha_zero_deg": 0.1,
+        "beta_zero_deg": 0.25,
+        "motor_scale_ppm": -700.0,
+        "backlash_deg": 0.08,
+        "time_offset_s": 0.004,
+    }
+
+
+def test_map_sweep_applies_every_term_of_the_rig_model() -> None:
+    """Every [kinematics] term moves the points as ``RigModel.forward`` says, with the motor speed
+    at each beam (the analytic trajectory's derivative) for backlash and time offset; the beams of
+    ``MappedSweep.beam_rays`` meet the points."""
+    from lrms.kinematics import RigModel
+
+    rng = np.random.default_rng(9)
+    scans, clock, mt_ns, mpos, beam_t = _sweep(rng, n_scans=40)
+    ranges = np.concatenate([s.ranges_m for s in scans])
+    full = _full_model()
+    nominal = map_sweep(scans, mt_ns, mpos, clock, RigCalibration(p=0.103))
+    speed_true = 0.17 + 0.01 * np.pi * np.cos(np.pi * beam_t)  # d beta_true / dt > 0: one direction
+    for key in full:
+        if key == "p_m":
+            continue
+        calib = RigCalibration.from_dict({"p_m": 0.103, key: full[key]})
+        m = map_sweep(scans, mt_ns, mpos, clock, calib)
+        assert np.array_equal(m.beta, nominal.beta)  # the encoder's angle; the model corrects it
+        expect = calib.rig.forward(ranges, m.alpha, m.beta, speed_true)
+        moved = float(np.max(np.linalg.norm(m.points - nominal.points, axis=1)))
+        assert moved > 5e-4, key  # the term is applied: >= 0.5 mm somewhere at these magnitudes
+        # the speed is the slope of the 200 Hz samples' polyline: off the derivative by up to
+        # |beta''| dt / 2 = 0.1 rad/s^2 x 2.5 ms = 2.5e-4 rad/s, x 4 ms x 4 m = 4 um (time offset only)
+        assert np.max(np.linalg.norm(m.points - expect, axis=1)) < (1e-5 if key == "time_offset_s" else 1e-12), key
+    calib = RigCalibration.from_dict(full)
+    m = map_sweep(scans, mt_ns, mpos, clock, calib)
+    assert np.max(np.abs(m.motor_speed - speed_true)) < 2e-3  # type: ignore[operator]
+    assert np.max(np.linalg.norm(m.points - calib.rig.forward(ranges, m.alpha, m.beta, speed_true), axis=1)) < 1e-5
+    o, d, geo = m.beam_rays()
+    assert np.max(np.linalg.norm(o + geo[:, None] * d - m.points, axis=1)) < 1e-12
+    assert np.allclose(geo, 0.015 + (1 + 800e-6) * ranges)
+    # backlash follows the direction of motion: the same sweep run backwards takes +backlash/2
+    only = RigCalibration.from_dict({"backlash_deg": 0.08})
+    up = map_sweep(scans, mt_ns, mpos, clock, only)
+    down = map_sweep(scans, mt_ns, -mpos, clock, only)
+    half = np.deg2rad(0.04)
+    assert np.allclose(up.rig_points, forward(up.ranges, up.alpha, up.beta - half), atol=1e-12)
+    assert np.allclose(down.rig_points, forward(down.ranges, down.alpha, down.beta + half), atol=1e-12)
+    assert isinstance(m.rig, RigModel) and m.rig == calib.rig
+
+
+def test_interpolated_motor_speed_is_the_polyline_slope() -> None:
+    from service.sweep import interpolate_speed
+
+    out = interpolate_speed([-1.0, 0.5, 1.0, 1.5, 2.5], [0.0, 1.0, 2.0], [0.0, 2.0, 2.0])
+    assert np.isnan(out[0]) and out[1] == 2.0 and out[2] == 0.0 and out[3] == 0.0 and np.isnan(out[4])
+    with pytest.raises(SweepError, match="two motor samples"):
+        interpolate_speed([0.0], [0.0], [1.0])
+    with pytest.raises(SweepError, match="increase"):
+        interpolate_speed([0.0], [1.0, 0.0], [1.0, 2.0])
