@@ -16,9 +16,10 @@ beam i is modelled as the echo the model cylinder would return:
   (``xi_k = Phi^-1(Phi(xi_lo) + c u_k)``, weights ``c g_k``): each node a sub-ray cast exactly
   against the model (``_ray_cylinder``), so the integral follows the cylinder's true range
   profile and moves smoothly with the parameters (no sub-ray popping in or out);
-* the range along the other direction across the beam varies linearly (slope from two more
-  casts): it averages out of an energy-weighted range and widens the range distribution of a
-  first-hit one;
+* the range along the other direction across the beam varies linearly: it averages out of an
+  energy-weighted range and widens the range distribution of a first-hit one;
+* first hit (``mode="first"``): the range is in closed form (:func:`first_hit_range`, no sub-ray
+  casts); the nodes below serve the energy-weighted family;
 * edge behaviour, two families (what SICK publishes fixes neither): **energy-weighted** (the
   range is the energy-weighted mean over the covered spot, energy ~ cos(incidence) / t^2; it does
   not depend on the detection threshold, so the fit conditions on a beam being detected and
@@ -63,6 +64,9 @@ COVERAGE_SCALE = 0.05
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(16)
 _GL_U = 0.5 * (_GL_X + 1.0)
 _GL_G = 0.5 * _GL_W
+#: Gauss-Hermite nodes and weights of the standard normal (the first-hit model's spread along the axis).
+_GH_X, _GH_W = np.polynomial.hermite_e.hermegauss(8)
+_GH_W = _GH_W / np.sqrt(2.0 * np.pi)
 
 
 @dataclass(frozen=True)
@@ -73,13 +77,18 @@ class BeamOptics:
     15 mrad, SICK 8012471 section 3.6.2). ``profile_sigma``: the Gaussian's sigma over that
     diameter (0.25: the diameter read as the 1/e^2 intensity diameter; SICK does not define the
     spot's edge, so this is our reading). ``spot_scale_u``: relative standard uncertainty of the
-    effective spot size carried into ``edge_model_u_m`` (0.15, ours). Bad values: :class:`FitError`.
+    effective spot size carried into ``edge_model_u_m`` (0.15, ours). ``share_u``: standard
+    uncertainty of a first-hit beam's share of the spot at the threshold (profile shape, the
+    simulator's sub-ray sampling), added to the range sigma through ``dT / d share``; default 0
+    (off): with it on, the first-hit family's chi-square is not comparable with the thin beam's in
+    the AIC (no log-determinant term yet) and it wins on ideal clouds. Bad values: :class:`FitError`.
     """
 
     exit_diameter_m: float = LMS1XX_EXIT_DIAMETER
     divergence_rad: float = LMS1XX_DIVERGENCE
     profile_sigma: float = 0.25
     spot_scale_u: float = 0.15
+    share_u: float = 0.0
 
     def __post_init__(self) -> None:
         for name, lo, hi in (
@@ -87,6 +96,7 @@ class BeamOptics:
             ("divergence_rad", 0.0, 0.5),
             ("profile_sigma", 1e-3, 10.0),
             ("spot_scale_u", 0.0, 1.0),
+            ("share_u", 0.0, 0.5),
         ):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and np.isfinite(v) and lo <= v <= hi):
@@ -113,13 +123,28 @@ def expected_echo(
 ) -> tuple[FloatArray, FloatArray]:
     """Expected range of each beam's echo from the cylinder ``(cyl_a, cyl_w, radius)`` and the
     covered share ``c`` of its spot (see the module notes). ``scale`` multiplies the spot size."""
+    rng_, c, _ = _echo(cyl_a, cyl_w, radius, rays, optics, mode, tau, scale)
+    return rng_, c
+
+
+def _echo(
+    cyl_a: FloatArray,
+    cyl_w: FloatArray,
+    radius: float,
+    rays: Rays,
+    optics: BeamOptics,
+    mode: EdgeMode,
+    tau: float = 0.3,
+    scale: float = 1.0,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """:func:`expected_echo`, and for a first hit the slope ``dT / d share`` of the range in the
+    share of the spot at the threshold (0 for the energy-weighted family)."""
     o, u = rays.origins, rays.dirs
     w = np.asarray(cyl_w, dtype=np.float64)
     a = np.asarray(cyl_a, dtype=np.float64)
     nvec = np.cross(u, w)
     nn = np.maximum(np.linalg.norm(nvec, axis=1, keepdims=True), 1e-12)
     nvec = nvec / nn
-    mvec = np.cross(u, nvec)
     x0 = _dot(o - a, nvec)
     t_ca, _ = _ray_cylinder(o, u, a, w, np.asarray(1e-9))  # closest approach to the axis
     s0 = scale * optics.profile_sigma * optics.exit_diameter_m
@@ -129,6 +154,9 @@ def expected_echo(
     xi_hi = (radius - x0) / sig
     p_lo, p_hi = ndtr(xi_lo), ndtr(xi_hi)
     c = np.maximum(p_hi - p_lo, 0.0)
+    if mode == "first":
+        big_t, slope = first_hit_range(x0, t_ca, _dot(u, w), radius, s0, sd, tau, c)
+        return big_t, c, slope
     # nodes in probability over the covered part; a spot that meets nothing keeps nodes at the edge
     width = np.maximum(c, 1e-9)
     base = np.where(x0 > 0, np.minimum(p_lo, 1.0 - width), p_lo)
@@ -137,47 +165,86 @@ def expected_echo(
     wts = c[:, None] * _GL_G[None, :]
     k = xi.shape[1]
 
-    def cast(lateral: FloatArray, along: float) -> tuple[FloatArray, FloatArray]:
-        off = lateral[..., None] * nvec[:, None, :] + along * mvec[:, None, :]
+    def cast(lateral: FloatArray) -> tuple[FloatArray, FloatArray]:
+        off = lateral[..., None] * nvec[:, None, :]
         so = o[:, None, :] + s0 * off
         su = u[:, None, :] + np.tan(sd) * off
         su = su / np.linalg.norm(su, axis=2, keepdims=True)
         t, _ = _ray_cylinder(so.reshape(-1, 3), su.reshape(-1, 3), a, w, np.asarray(radius))
         return t.reshape(-1, k), su
 
-    t, su = cast(xi, 0.0)
-    if mode == "weighted":
-        hit = o[:, None, :] + t[..., None] * su
-        q = hit - a
-        q = q - _dot(q, w)[..., None] * w
-        cos = np.abs(_dot(q, su)) / np.maximum(np.linalg.norm(q, axis=2), 1e-300)
-        e = wts * np.maximum(cos, 1e-3) / np.square(np.maximum(t, 1e-3))
-        rng_ = np.sum(e * t, axis=1) / np.maximum(np.sum(e, axis=1), 1e-300)
-        return np.asarray(rng_, dtype=np.float64), c
-    t_up, _ = cast(xi, 1.0)
-    t_dn, _ = cast(xi, -1.0)
-    ys = 0.5 * np.abs(t_up - t_dn)  # range change over one sigma along the axis' direction
-    gap = np.abs(np.diff(t, axis=1))
-    spacing = np.concatenate([gap[:, :1], 0.5 * (gap[:, 1:] + gap[:, :-1]), gap[:, -1:]], axis=1)
-    s = np.sqrt(ys * ys + np.square(0.5 * spacing) + 1e-10)
-    target = np.minimum(tau, 0.999 * c)[:, None]
-    lo = np.min(t - 6 * s, axis=1)
-    hi = np.max(t + 6 * s, axis=1)
-    big_t = np.sum(wts * t, axis=1) / np.maximum(c, 1e-300)
-    for _ in range(40):  # safeguarded Newton on F(T) = target
-        z = (big_t[:, None] - t) / s
-        f = np.sum(wts * ndtr(z), axis=1, keepdims=True) - target
-        fp = np.sum(wts * np.exp(-0.5 * z * z) / (np.sqrt(2 * np.pi) * s), axis=1, keepdims=True)
-        lo = np.where(f[:, 0] < 0, big_t, lo)
-        hi = np.where(f[:, 0] >= 0, big_t, hi)
-        step = big_t - f[:, 0] / np.maximum(fp[:, 0], 1e-300)
-        inside = (step > lo) & (step < hi)
-        new = np.where(inside, step, 0.5 * (lo + hi))
-        if np.max(np.abs(new - big_t)) < 1e-11:
-            big_t = new
-            break
+    t, su = cast(xi)
+    hit = o[:, None, :] + t[..., None] * su
+    q = hit - a
+    q = q - _dot(q, w)[..., None] * w
+    cos = np.abs(_dot(q, su)) / np.maximum(np.linalg.norm(q, axis=2), 1e-300)
+    e = wts * np.maximum(cos, 1e-3) / np.square(np.maximum(t, 1e-3))
+    rng_ = np.sum(e * t, axis=1) / np.maximum(np.sum(e, axis=1), 1e-300)
+    return np.asarray(rng_, dtype=np.float64), c, np.zeros_like(c)
+
+
+def first_hit_range(
+    x0: FloatArray,
+    t_ca: FloatArray,
+    cos_axis: FloatArray,
+    radius: float,
+    s0: float,
+    sd: float,
+    tau: float,
+    c: FloatArray,
+) -> tuple[FloatArray, FloatArray]:
+    """The first-hit range of each beam in closed form: the range ``T`` at which the share of the
+    spot whose sub-rays meet the cylinder at a range ``<= T`` reaches ``min(tau, 0.999 c)``.
+
+    A sub-ray at lateral offset ``x`` from the axis (across the beam and the axis) meets the
+    cylinder at ``t_ca - sqrt(r^2 - x^2) / p`` (``p = |u x w|``), so the sub-rays nearer than
+    ``T`` are those with ``|x| <= x_T = sqrt(r^2 - (p (t_ca - T))^2)`` and their share is
+    ``F0(T) = Phi((x_T - x0) / s) - Phi((-x_T - x0) / s)`` (``s`` the spot sigma at ``T``).
+    Along the axis the range changes by ``s cos_axis / p`` per sigma of the spot: ``F0`` is
+    averaged over that Gaussian by Gauss-Hermite nodes. ``F(T) = target`` is solved by a
+    safeguarded Newton iteration. Returns ``T`` and ``dT / dF`` at ``T`` (capped at 1 m per unit
+    share): where the threshold falls near the limb, ``F`` is flat and a small error of the share
+    moves ``T`` by millimetres. (The sub-rays' tilt across the beam changes their path length
+    by ``t tilt^2 / 2``, about 0.02 mm at one sigma: left out.)
+    """
+    p = np.sqrt(np.maximum(1.0 - cos_axis * cos_axis, 1e-12))
+    depth = radius / p  # range extent of the part's front along the beam
+    ys = (s0 + sd * np.maximum(t_ca, 0.0)) * np.abs(cos_axis) / p
+    target = np.minimum(tau, 0.999 * c)
+    eta = _GH_X[None, :]
+    h = _GH_W[None, :]
+    ax0 = np.abs(x0)[:, None]
+
+    def share(big_t: FloatArray) -> tuple[FloatArray, FloatArray]:
+        tt = big_t[:, None] - eta * ys[:, None]
+        dd = t_ca[:, None] - tt
+        inside = (dd > 0) & (dd < depth[:, None])
+        x2 = np.where(dd <= 0, radius * radius, np.maximum(radius * radius - np.square(p[:, None] * dd), 0.0))
+        xt = np.sqrt(x2)
+        sig = s0 + sd * np.maximum(np.minimum(tt, t_ca[:, None]), 0.0)
+        zp, zm = (xt - ax0) / sig, (-xt - ax0) / sig
+        f = np.sum(h * (ndtr(zp) - ndtr(zm)), axis=1)
+        dxt = np.where(inside, np.square(p[:, None]) * dd / np.maximum(xt, 1e-9 * radius), 0.0)
+        dens = (np.exp(-0.5 * zp * zp) + np.exp(-0.5 * zm * zm)) / (np.sqrt(2 * np.pi) * sig)
+        return f, np.sum(h * dens * dxt, axis=1)
+
+    lo = t_ca - depth - 6.0 * ys - 1e-9
+    hi = t_ca + 6.0 * ys + 1e-9
+    # start: the front's one-sided quantile, well inside the bracket
+    big_t = np.clip(t_ca - depth + 0.5 * (1.0 - np.minimum(target / np.maximum(c, 1e-12), 1.0)) * depth, lo, hi)
+    for _ in range(60):
+        f, fp = share(big_t)
+        f = f - target
+        lo = np.where(f < 0, big_t, lo)
+        hi = np.where(f >= 0, big_t, hi)
+        step = big_t - f / np.maximum(fp, 1e-300)
+        new = np.where((step > lo) & (step < hi), step, 0.5 * (lo + hi))
+        done = np.max(np.abs(new - big_t)) < 1e-11
         big_t = new
-    return np.asarray(big_t, dtype=np.float64), c
+        if done:
+            break
+    _, fp = share(big_t)
+    return np.asarray(big_t, dtype=np.float64), np.asarray(1.0 / np.maximum(fp, 1.0), dtype=np.float64)
 
 
 @dataclass
@@ -196,8 +263,9 @@ def _residuals(
 ) -> FloatArray:
     a, w, r = frame.unpack(theta[:5])
     tau = float(expit(theta[5])) if mode == "first" else 0.0
-    pred, c = expected_echo(a, w, float(r), rays, optics, mode, tau, scale)
-    res = (rays.ranges - pred) / rays.sigma_l
+    pred, c, slope = _echo(a, w, float(r), rays, optics, mode, tau, scale)
+    sigma = rays.sigma_l if mode == "weighted" else np.hypot(rays.sigma_l, optics.share_u * slope)
+    res = (rays.ranges - pred) / sigma
     if mode == "first":
         res = np.concatenate([res, np.maximum(tau - c, 0.0) / COVERAGE_SCALE])
     return np.asarray(res, dtype=np.float64)
