@@ -15,6 +15,8 @@ from fastapi.responses import JSONResponse
 from service.config import RigConfig
 from service.jobs import JobRunner, MeasureFn, Metrics, ProgressHub
 from service.models import MeasurementRequest, planned_duration_s, resolve_sweep
+from service.parts import with_parts
+from service.recipestore import RecipeStore, recipe_engine
 from service.scheduler import Scheduler
 from service.store import Store
 
@@ -84,9 +86,13 @@ class Service:
         validate: Callable[[MeasurementRequest], None] | None = None,
         rig_health: RigInfo | None = None,
         rig_reset: RigInfo | None = None,
+        recipes: RecipeStore | None = None,
     ) -> None:
         self.config = config
         self.store = store or Store(config.storage.db_path)
+        self.recipes = recipes or RecipeStore(recipe_engine(config.storage.db_path))
+        """Versioned recipes and the parts measured with them (service.recipestore)."""
+        measure = with_parts(measure, self.recipes)
         self.metrics = Metrics()
         self.hub = ProgressHub()
         self.runner = JobRunner(
