@@ -71,7 +71,7 @@ def wait_done(client: httpx.Client, mid: str, timeout: float = 20.0) -> dict[str
     while time.monotonic() < end:
         body: dict[str, Any] = client.get(f"/api/v1/measurements/{mid}").json()
         if body["state"] in ("done", "failed", "cancelled"):
-            assert body["state"] == "done", body
+            assert body["state"] == "done", body["error"]
             return body
         time.sleep(0.02)
     raise AssertionError(f"measurement {mid} did not finish")
