@@ -33,9 +33,14 @@ COMMANDS: dict[tuple[str, ...], str] = {
     ("replay",): "service.cli.replay",
     ("sim", "scanner"): "service.cli.sim_scanner",
     ("sim", "motor"): "service.cli.sim_motor",
+    ("recipe", "import"): "service.cli.recipe_import",
+    ("recipe", "export"): "service.cli.recipe_export",
 }
 
-GROUP_HELP = {"sim": "run a simulated device server (scanner or motor)"}
+GROUP_HELP = {
+    "sim": "run a simulated device server (scanner or motor)",
+    "recipe": "import or export a part recipe (TOML)",
+}
 
 
 class _Formatter(argparse.HelpFormatter):

@@ -302,3 +302,39 @@ def test_history_and_spc_against_hand_computed_numbers(served: tuple[httpx.Clien
     s = client.get("/api/v1/recipes/FLANGE-SHAFT-320/spc").json()
     assert s["points"][-1]["beyond_limits"] is True and s["points"][-1]["flagged"] is True
     assert client.get("/api/v1/recipes/NOPE/history").status_code == 404
+
+
+def test_cli_import_and_export_round_trip(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO
+
+    lrms = [sys.executable, "-m", "service.cli.main"]
+    data = ["--data", str(tmp_path / "data")]
+    src = tmp_path / "in.toml"
+    src.write_text(
+        'name = "PIN-20"\ntarget = "cylinder"\nmaterial = "stainless_austenitic"\ndecision_rule = "simple-acceptance"\n'
+        "[tolerances.diameter]\nnominal_m = 0.02\nlower_m = -0.0001\nupper_m = 0.0001\n"
+    )
+
+    def cli(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([*lrms, "recipe", *args], cwd=REPO, capture_output=True, text=True, timeout=60)
+
+    r = cli("import", str(src), *data)
+    assert r.returncode == 0 and r.stdout.strip() == "PIN-20: created, version 1", r.stderr
+    assert cli("import", str(src), *data).stdout.strip() == "PIN-20: unchanged, version 1"
+    src.write_text(src.read_text().replace("upper_m = 0.0001", "upper_m = 0.0002"))
+    assert cli("import", str(src), *data).stdout.strip() == "PIN-20: version 2"
+    out = tmp_path / "out.toml"
+    r = cli("export", "PIN-20", str(out), "--version", "1", *data)
+    assert r.returncode == 0, r.stderr
+    text = out.read_text()
+    assert text.startswith("# lrms recipe PIN-20, version 1") and "upper_m = 0.0001" in text
+    assert 'decision_rule = "simple-acceptance"' in text
+    assert "upper_m = 0.0002" in cli("export", "PIN-20", *data).stdout
+    src.write_text(src.read_text().replace("lower_m = -0.0001", "lower_m = 0.0005"))
+    r = cli("import", str(src), *data)
+    assert r.returncode == 1 and r.stderr.startswith("error: tolerances.diameter: lower_m"), r.stderr
+    r = cli("export", "NOPE", *data)
+    assert r.returncode == 1 and "no recipe 'NOPE'" in r.stderr
