@@ -113,6 +113,8 @@ NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$"
 PART_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.:/-]{0,127}$"
 #: The measurement fields a recipe supplies; a request naming a recipe may not give them (422).
 RECIPE_FIELDS = ("target", "sweep", "roi", "options")
+#: The largest recipe version a request may name (SQLite's integers end at 2^63).
+MAX_VERSION = 1_000_000_000
 
 
 class MeasurementRequest(_Strict):
@@ -131,7 +133,9 @@ class MeasurementRequest(_Strict):
         pattern=NAME_PATTERN,
         description="measure a part of this recipe: the recipe supplies target, sweep, roi and options",
     )
-    recipe_version: int | None = Field(default=None, ge=1, description="the recipe's version (default: the latest)")
+    recipe_version: int | None = Field(
+        default=None, ge=1, le=MAX_VERSION, description="the recipe's version (default: the latest)"
+    )
     part_id: str | None = Field(default=None, pattern=PART_ID_PATTERN, description="the part's id (with a recipe)")
     part_temperature_c: float | None = Field(
         default=None, ge=-273.15, le=2000.0, description="the part's temperature (°C): the result is corrected to 20 °C"

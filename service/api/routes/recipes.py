@@ -14,16 +14,32 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, HTTPException, Path, Query, Request, Response, status
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, Field, ValidationError
+from starlette.convertors import Convertor, register_url_convertor
 
 from lrms.spc import imr_chart
 from service.api.core import Service
 from service.api.deps import ADMIN, READ, READ_RESPONSES, ServiceDep
 from service.api.errors import responses
 from service.errors import RequestFieldError
-from service.models import NAME_PATTERN
+from service.models import MAX_VERSION, NAME_PATTERN
 from service.recipes import Recipe, RecipeOut, from_toml, to_toml
 from service.recipestore import PartLink
 from service.store import NotFound
+
+
+class _NameConvertor(Convertor[str]):
+    """Recipe names in paths: no ``.``, so ``/recipes/{name}.toml`` is never taken for ``/recipes/{name}``."""
+
+    regex = NAME_PATTERN.removeprefix("^").removesuffix("$")
+
+    def convert(self, value: str) -> str:
+        return value
+
+    def to_string(self, value: str) -> str:
+        return value
+
+
+register_url_convertor("recipe", _NameConvertor())
 
 router = APIRouter(prefix="/recipes", tags=["recipes"], dependencies=READ, responses=READ_RESPONSES)
 
@@ -32,11 +48,15 @@ TOML_TYPES = ("application/toml", "text/toml", "text/x-toml")
 #: The most history rows one request returns.
 MAX_HISTORY = 10_000
 
+#: The recipe's JSON Schema, inline (its sub-models are components already, through RecipeOut).
+_RECIPE_SCHEMA = {
+    k: v for k, v in Recipe.model_json_schema(ref_template="#/components/schemas/{model}").items() if k != "$defs"
+}
 _BODY = {
     "requestBody": {
         "required": True,
         "content": {
-            "application/json": {"schema": {"$ref": "#/components/schemas/Recipe"}},
+            "application/json": {"schema": _RECIPE_SCHEMA},
             "application/toml": {"schema": {"type": "string", "description": "the recipe as TOML"}},
         },
     }
@@ -64,7 +84,7 @@ async def _recipe_body(request: Request) -> Recipe:
         raise exc.under("body") from None
 
 
-@router.get("", response_model=list[RecipeOut])
+@router.get("", response_model=list[RecipeOut], responses=responses(422))
 def list_recipes(
     service: ServiceDep, include_retired: Annotated[bool, Query(description="also retired recipes")] = False
 ) -> list[RecipeOut]:
@@ -89,12 +109,12 @@ async def create_recipe(request: Request, response: Response, service: ServiceDe
 
 
 @router.get(
-    "/{name}.toml",
+    "/{name:recipe}.toml",
     response_class=Response,
     responses={200: {"content": {"application/toml": {}}}, **responses(404, 422)},
 )
 def export_recipe(
-    name: RecipeName, service: ServiceDep, version: Annotated[int | None, Query(ge=1)] = None
+    name: RecipeName, service: ServiceDep, version: Annotated[int | None, Query(ge=1, le=MAX_VERSION)] = None
 ) -> Response:
     """The recipe (latest, or ``?version=``) as TOML: ``POST`` it back, or ``lrms recipe import`` it."""
     r = service.recipes.latest(name) if version is None else service.recipes.version(name, version)
@@ -105,25 +125,27 @@ def export_recipe(
     )
 
 
-@router.get("/{name}", response_model=RecipeOut, responses=responses(404, 422))
+@router.get("/{name:recipe}", response_model=RecipeOut, responses=responses(404, 422))
 def get_recipe(name: RecipeName, service: ServiceDep) -> RecipeOut:
     """The latest version (a retired recipe too: ``retired`` says so)."""
     return service.recipes.latest(name)
 
 
-@router.get("/{name}/versions", response_model=list[RecipeOut], responses=responses(404, 422))
+@router.get("/{name:recipe}/versions", response_model=list[RecipeOut], responses=responses(404, 422))
 def list_versions(name: RecipeName, service: ServiceDep) -> list[RecipeOut]:
     """Every version, oldest first."""
     return [service.recipes.version(name, v) for v in service.recipes.versions(name)]
 
 
-@router.get("/{name}/versions/{version}", response_model=RecipeOut, responses=responses(404, 422))
-def get_version(name: RecipeName, version: Annotated[int, Path(ge=1, le=2**31)], service: ServiceDep) -> RecipeOut:
+@router.get("/{name:recipe}/versions/{version}", response_model=RecipeOut, responses=responses(404, 422))
+def get_version(
+    name: RecipeName, version: Annotated[int, Path(ge=1, le=MAX_VERSION)], service: ServiceDep
+) -> RecipeOut:
     return service.recipes.version(name, version)
 
 
 @router.put(
-    "/{name}",
+    "/{name:recipe}",
     response_model=RecipeOut,
     dependencies=ADMIN,
     responses=responses(401, 403, 404, 409, 413, 422),
@@ -138,7 +160,9 @@ async def update_recipe(name: RecipeName, request: Request, service: ServiceDep)
     return service.recipes.update(recipe)
 
 
-@router.delete("/{name}", response_model=RecipeOut, dependencies=ADMIN, responses=responses(401, 403, 404, 422))
+@router.delete(
+    "/{name:recipe}", response_model=RecipeOut, dependencies=ADMIN, responses=responses(401, 403, 404, 413, 422)
+)
 def retire_recipe(name: RecipeName, service: ServiceDep) -> RecipeOut:
     """Retire the recipe: its versions and history stay readable; new parts of it are refused (422)."""
     return service.recipes.retire(name)
@@ -217,12 +241,12 @@ def _csv(rows: list[HistoryRow], name: str) -> Response:
     )
 
 
-Version = Annotated[int | None, Query(ge=1, description="only parts measured with this version")]
+Version = Annotated[int | None, Query(ge=1, le=MAX_VERSION, description="only parts measured with this version")]
 Limit = Annotated[int, Query(ge=1, le=MAX_HISTORY, description="the newest this many")]
 
 
 @router.get(
-    "/{name}/history",
+    "/{name:recipe}/history",
     response_model=list[HistoryRow],
     responses={200: {"content": {"text/csv": {}}}, **responses(404, 422)},
 )
@@ -239,7 +263,7 @@ def history(
 
 
 @router.get(
-    "/{name}/history.csv",
+    "/{name:recipe}/history.csv",
     response_class=Response,
     responses={200: {"content": {"text/csv": {}}}, **responses(404, 422)},
 )
@@ -293,7 +317,7 @@ class SpcOut(BaseModel):
     points: list[SpcPoint]
 
 
-@router.get("/{name}/spc", response_model=SpcOut, responses=responses(404, 409, 422))
+@router.get("/{name:recipe}/spc", response_model=SpcOut, responses=responses(404, 409, 422))
 def spc(name: RecipeName, service: ServiceDep, version: Version = None, limit: Limit = 1000) -> SpcOut:
     """I-MR limits, flags and Cp / Cpk / Pp / Ppk of the done parts' decided values, in time order.
     The tolerance is the latest version's (or ``?version=``'s). 409 with fewer than 2 done parts."""
