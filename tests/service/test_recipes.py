@@ -338,3 +338,33 @@ def test_cli_import_and_export_round_trip(tmp_path: Path) -> None:
     assert r.returncode == 1 and r.stderr.startswith("error: tolerances.diameter: lower_m"), r.stderr
     r = cli("export", "NOPE", *data)
     assert r.returncode == 1 and "no recipe 'NOPE'" in r.stderr
+
+
+def test_an_elbow_part_is_decided_on_its_diameter_with_the_fit_sigma(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delenv(TOKEN_ENV, raising=False)
+    cfg = parse_toml(f"[sim]\n[storage]\ndir = '{tmp_path}'\n[auth]\nread = 'open'\nadmin_token = '{TOKEN}'\n")
+
+    def elbow(ctx: JobContext) -> dict[str, Any]:
+        assert ctx.request.target == "elbow" and ctx.request.options.degree_deg == 90.0
+        return {"model": "elbow", "diameter_m": 0.2190, "bend_radius_m": 0.305, "sigma": {"D_m": 3e-4}}
+
+    body = {
+        "name": "ELBOW-219",
+        "target": "elbow",
+        "tolerances": {
+            "diameter": {"nominal_m": 0.2191, "lower_m": -0.002, "upper_m": 0.002},
+            "bend_radius": {"nominal_m": 0.305, "lower_m": -0.003, "upper_m": 0.003},
+            "bend_angle": {"nominal_deg": 90.0, "lower_deg": -1.0, "upper_deg": 1.0},
+        },
+        "options": {"degree_deg": 90.0},
+    }
+    svc = Service(cfg, elbow)
+    with ServerThread(create_app(svc)) as srv, httpx.Client(base_url=srv.url, timeout=10.0, headers=AUTH) as client:
+        assert client.post("/api/v1/recipes", json=body).status_code == 201
+        r = client.post("/api/v1/measurements", json={"recipe": "ELBOW-219", "part_id": "E1"})
+        assert r.status_code == 202, r.text
+        dec = wait_done(client, r.json()["id"])["result"]["decision"]
+    assert dec["outcome"] == "conforms" and dec["value_m"] == 0.2190
+    assert dec["expanded_m"] == pytest.approx(6e-4) and dec["lsl_m"] == pytest.approx(0.2171)
