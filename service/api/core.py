@@ -128,6 +128,7 @@ class Service:
             self._started = False
             self.scheduler.stop()
             self.runner.stop()
+            self.recipes.close()  # its connections; the store opens new ones if asked again
 
     def token(self) -> str | None:
         """The operator token (None: not configured)."""

@@ -36,7 +36,6 @@ def test_the_doc_has_the_workflow() -> None:
 def test_the_hmi_doc_runs_against_a_live_service(tmp_path: Path) -> None:
     cfg = parse_toml((REPO / "service" / "default_rig.toml").read_text(), base_dir=tmp_path)
     data = cfg.model_dump(mode="json")
-    data["sim"]["process"] = False
     auth = {"operator_token": OPERATOR, "admin_token": ADMIN, "read": "token"}
     cfg = parse_config({**data, "auth": auth}, base_dir=tmp_path)
     svc, rig = build_service(cfg)

@@ -22,8 +22,7 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 @pytest.fixture
 def sim_client(tmp_path: Any) -> Iterator[httpx.Client]:
     cfg = parse_toml((REPO / "service" / "default_rig.toml").read_text(), base_dir=tmp_path)
-    data = cfg.model_dump(mode="json")
-    data["sim"]["process"] = False  # the simulated devices inside the rig process
+    data = cfg.model_dump(mode="json")  # the simulated devices in a process of their own, as `lrms serve` runs them
     cfg = parse_config({**data, "auth": {"admin_token": TOKEN, "read": "open"}}, base_dir=tmp_path)
     svc, rig = build_service(cfg)  # the rig in its own process, as `lrms serve` runs it
     try:
