@@ -48,6 +48,7 @@ import numpy as np
 from numpy.polynomial import Polynomial
 from numpy.typing import ArrayLike, NDArray
 
+from lrms.budget import BudgetRow
 from lrms.errors import LrmsError
 
 FloatArray = NDArray[np.float64]
@@ -76,24 +77,6 @@ class TemperatureRangeError(ThermalError):
 
 class AbsoluteZeroError(TemperatureRangeError):
     """A temperature below absolute zero."""
-
-
-@dataclass(frozen=True)
-class BudgetRow:
-    """One row of a GUM uncertainty budget (same fields as the budget module's rows; the lead unifies them).
-
-    ``u_x`` is the standard uncertainty of the input quantity in ``unit``; ``sensitivity`` is ``dD20/dx``
-    (metres per ``unit``); ``u_m = |sensitivity| u_x`` is the contribution to the diameter in metres.
-    """
-
-    source: str
-    type: str
-    u_x: float
-    unit: str
-    sensitivity: float
-    u_m: float
-    distribution: str
-    note: str = ""
 
 
 @dataclass(frozen=True)

@@ -108,14 +108,60 @@ class FitOptions(_Strict):
         return self
 
 
+#: Names of recipes (and part ids): letters, digits, ``_`` and ``-`` (no ``.``: ``/recipes/{name}.toml``).
+NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$"
+PART_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.:/-]{0,127}$"
+#: The measurement fields a recipe supplies; a request naming a recipe may not give them (422).
+RECIPE_FIELDS = ("target", "sweep", "roi", "options")
+#: The largest recipe version a request may name (SQLite's integers end at 2^63).
+MAX_VERSION = 1_000_000_000
+
+
 class MeasurementRequest(_Strict):
-    target: Literal["cylinder", "elbow"]
+    """Free form (``target``, ``sweep``, ``roi``, ``options``) or a part of a recipe (``recipe``,
+    ``part_id`` and optionally the part's temperature and the operator). The API expands a recipe
+    into the free-form fields before the request is stored, with ``recipe_version`` pinned."""
+
+    target: Literal["cylinder", "elbow"] | None = Field(
+        default=None, description="the model to fit; required unless a recipe is named"
+    )
     sweep: SweepSpec = Field(default_factory=SweepSpec)
     roi: RoiSpec | None = None
     options: FitOptions = Field(default_factory=FitOptions)
+    recipe: str | None = Field(
+        default=None,
+        pattern=NAME_PATTERN,
+        description="measure a part of this recipe: the recipe supplies target, sweep, roi and options",
+    )
+    recipe_version: int | None = Field(
+        default=None, ge=1, le=MAX_VERSION, description="the recipe's version (default: the latest)"
+    )
+    part_id: str | None = Field(default=None, pattern=PART_ID_PATTERN, description="the part's id (with a recipe)")
+    part_temperature_c: float | None = Field(
+        default=None, ge=-273.15, le=2000.0, description="the part's temperature (°C): the result is corrected to 20 °C"
+    )
+    temperature_uncertainty_c: float | None = Field(
+        default=None, ge=0.0, le=500.0, description="standard uncertainty of part_temperature_c (K)"
+    )
+    operator: str | None = Field(default=None, max_length=200, description="who measured (for the record)")
 
     @model_validator(mode="after")
     def _options_fit_target(self) -> MeasurementRequest:
+        if self.recipe is None:
+            part = [f for f in ("recipe_version", "part_id", "part_temperature_c", "operator") if getattr(self, f)]
+            if self.temperature_uncertainty_c is not None:
+                part.append("temperature_uncertainty_c")
+            if part:
+                raise ValueError(f"{', '.join(part)}: only with a recipe (a part's measurement)")
+            if self.target is None:
+                raise ValueError("target: Field required (give a target, 'cylinder' or 'elbow', or a recipe)")
+        elif self.part_id is None:
+            raise ValueError("part_id: Field required (a measurement of a recipe is of a part)")
+        if (self.temperature_uncertainty_c is None) != (self.part_temperature_c is None):
+            raise ValueError(
+                "part_temperature_c and temperature_uncertainty_c go together: a hot part's temperature needs its "
+                "standard uncertainty (K)"
+            )
         o = self.options
         if self.target != "elbow" and (o.degree_deg is not None or o.ratio is not None or o.flange):
             raise ValueError("options degree_deg, ratio and flange apply to target 'elbow' only")
@@ -345,6 +391,8 @@ class ScheduleRequest(_Strict):
 
     @model_validator(mode="after")
     def _one_trigger(self) -> ScheduleRequest:
+        if self.measurement.recipe is not None:
+            raise ValueError("measurement.recipe: schedules take free-form measurements only (not recipes, yet)")
         if (self.cron is None) == (self.interval_s is None):
             raise ValueError("give exactly one of cron or interval_s")
         return self

@@ -24,7 +24,7 @@ from service.api.core import Service
 from service.api.docs import mount_docs
 from service.api.errors import install_handlers
 from service.api.guard import BodyGuard
-from service.api.routes import calibrations, measurements, ops, reports, rig, schedules
+from service.api.routes import calibrations, measurements, ops, recipes, reports, rig, schedules
 from service.jobs import Metrics
 
 __all__ = ["Service", "create_app"]
@@ -69,7 +69,7 @@ def create_app(service: Service, manage_lifecycle: bool = True) -> FastAPI:
 
     install_handlers(app)  # every error body as documented (service.api.errors)
     app.include_router(ops.router)
-    for module in (rig, measurements, reports, schedules, calibrations):
+    for module in (rig, measurements, reports, schedules, calibrations, recipes):
         app.include_router(module.router, prefix="/api/v1")
     mount_docs(app)
     reports.mount_web(app)  # the engineer's page at / (service/web)

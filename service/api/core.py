@@ -16,6 +16,8 @@ from service.calstore import CalibrationStore
 from service.config import RigConfig
 from service.jobs import JobContext, JobRunner, MeasureFn, Metrics, ProgressHub
 from service.models import MeasurementRequest, planned_duration_s, resolve_sweep
+from service.parts import with_parts
+from service.recipestore import RecipeStore
 from service.scheduler import Scheduler
 from service.store import Store
 
@@ -85,12 +87,16 @@ class Service:
         validate: Callable[[MeasurementRequest], None] | None = None,
         rig_health: RigInfo | None = None,
         rig_reset: RigInfo | None = None,
+        recipes: RecipeStore | None = None,
     ) -> None:
         self.config = config
         self.store = store or Store(config.storage.db_url, config.storage.rig_id)
         self.calibrations = CalibrationStore(self.store.engine)
         """Rig calibrations (``/api/v1/calibrations``); the active one of the store's ``rig_id`` is used by
         every measurement."""
+        self.recipes = recipes or RecipeStore(self.store.engine)
+        """Versioned recipes and the parts measured with them (service.recipestore)."""
+        measure = with_parts(measure, self.recipes)
         self.metrics = Metrics()
         self.hub = ProgressHub()
 
@@ -132,6 +138,7 @@ class Service:
             self._started = False
             self.scheduler.stop()
             self.runner.stop()
+            self.recipes.close()  # its connections; the store opens new ones if asked again
 
     def token(self) -> str | None:
         """The operator token (None: not configured)."""

@@ -62,9 +62,11 @@ _DESCRIPTIONS: dict[int, str] = {
     400: "the request body could not be read (not UTF-8 JSON)",
     401: "no bearer token, or an unknown one",
     403: "the token's role may not do this (read < operator < admin), or no token of the needed role is configured",
-    404: "no measurement, schedule or calibration with this id (or no active calibration)",
+    404: "no measurement, schedule or calibration with this id (or no active calibration), "
+    "no recipe (or recipe version) of this name",
     409: "the measurement's state does not allow this: cancel a finished one; its raw log or cloud while it "
-    "runs, or when it has none (cancelled before it ran, failed before anything was recorded)",
+    "runs, or when it has none (cancelled before it ran, failed before anything was recorded); a recipe that "
+    "exists already; a control chart of fewer than 2 parts",
     413: "the request body is larger than [api] max_body_bytes (refused before it is read)",
     422: "the request was refused: every refused field with the reason",
     429: "the measurement queue is full; retry after Retry-After seconds",

@@ -35,9 +35,15 @@ COMMANDS: dict[tuple[str, ...], str] = {
     ("report",): "service.cli.report",
     ("sim", "scanner"): "service.cli.sim_scanner",
     ("sim", "motor"): "service.cli.sim_motor",
+    ("recipe", "import"): "service.cli.recipe_import",
+    ("recipe", "export"): "service.cli.recipe_export",
 }
 
-GROUP_HELP = {"sim": "run a simulated device server (scanner or motor)", "db": "the result database"}
+GROUP_HELP = {
+    "sim": "run a simulated device server (scanner or motor)",
+    "db": "the result database",
+    "recipe": "import or export a part recipe (TOML)",
+}
 
 
 class _Formatter(argparse.HelpFormatter):

@@ -11,7 +11,7 @@ first SQLite store did; times are epoch seconds; flags are integers 0/1.
 
 from __future__ import annotations
 
-from sqlalchemy import BigInteger, Boolean, Column, Float, Index, Integer, MetaData, String, Table, Text
+from sqlalchemy import BigInteger, Boolean, Column, Float, ForeignKey, Index, Integer, MetaData, String, Table, Text
 from sqlalchemy.dialects.sqlite import REAL
 
 from service.db import RIG_ID_LENGTH
@@ -96,3 +96,37 @@ calibrations = Table(
     Index("calibrations_rig", "rig_id", "seq"),
 )
 """Rig calibrations (:mod:`service.calstore`): the ``CalibrationResult`` JSON, at most one active per rig."""
+
+recipes = Table(
+    "recipes",
+    metadata,
+    Column("name", String(64), primary_key=True),
+    Column("latest_version", Integer, nullable=False),
+    Column("retired", Boolean, nullable=False, default=False),
+    Column("created_at", Double, nullable=False),
+    Column("retired_at", Double, nullable=True),
+)
+"""Part recipes (:mod:`service.recipestore`): one row per name, shared by every rig of the plant."""
+
+recipe_versions = Table(
+    "recipe_versions",
+    metadata,
+    Column("name", String(64), ForeignKey("recipes.name"), primary_key=True),
+    Column("version", Integer, primary_key=True),
+    Column("created_at", Double, nullable=False),
+    Column("body", Text, nullable=False),
+)
+"""Every version of every recipe (a change is a new version; results name the one they used)."""
+
+recipe_measurements = Table(
+    "recipe_measurements",
+    metadata,
+    Column("measurement_id", String(64), primary_key=True),
+    Column("recipe", String(64), nullable=False),
+    Column("version", Integer, nullable=False),
+    Column("part_id", String(128), nullable=False),
+    Column("operator", String(200), nullable=True),
+    Column("created_at", Double, nullable=False),
+    Index("recipe_measurements_by_recipe", "recipe", "created_at"),
+)
+"""A part's measurement -> its recipe, version, part id and operator (the recipe's history)."""

@@ -101,14 +101,14 @@ def test_budget_rows_hand_values() -> None:
     assert r.scale == pytest.approx(1.0 / 1.0138, rel=1e-14)
     temp, data = r.rows
     assert (temp.source, temp.unit, temp.u_x) == ("part temperature", "K", 10.0)
-    assert temp.sensitivity == pytest.approx(c_e * 2e-5, rel=1e-12)
+    assert temp.c == pytest.approx(c_e * 2e-5, rel=1e-12)
     assert temp.u_m == pytest.approx(1.945922e-4, rel=1e-6)  # 10 K * 2e-5 / 1.0138^2
     assert (data.unit, data.u_x) == ("1", pytest.approx(0.05 * 0.0138))
-    assert data.sensitivity == pytest.approx(c_e, rel=1e-12)
+    assert data.c == pytest.approx(c_e, rel=1e-12)
     assert data.u_m == pytest.approx(6.713431e-4, rel=1e-6)  # 6.9e-4 / 1.0138^2
     assert r.u_thermal_m == pytest.approx(math.hypot(temp.u_m, data.u_m))
     for row in r.rows:
-        assert row.type == "B" and row.u_m == pytest.approx(abs(row.sensitivity) * row.u_x)
+        assert row.type == "B" and row.u_m == pytest.approx(abs(row.c) * row.u_x)
 
 
 def test_phase_fraction_row_inside_the_transformation_range() -> None:

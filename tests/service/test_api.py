@@ -120,7 +120,7 @@ def test_no_token_configured_disables_writes(tmp_path: Path, monkeypatch: pytest
     ("body", "needle"),
     [
         ({"target": "sphere"}, "body.target"),
-        ({}, "body.target: Field required"),
+        ({}, "body: target: Field required"),
         ({"target": "cylinder", "sweep": {"speed_deg_s": -5}}, "body.sweep.speed_deg_s"),
         ({"target": "cylinder", "sweep": {"start_deg": 10, "stop_deg": 10}}, "must differ"),
         ({"target": "cylinder", "sweep": {"mode": "zigzag"}}, "body.sweep.mode"),

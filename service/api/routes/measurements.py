@@ -18,7 +18,8 @@ from service.api.errors import responses
 from service.db import RIG_ID_LENGTH, RIG_ID_RE
 from service.errors import RequestFieldError
 from service.models import MeasurementOut, MeasurementRequest, resolve_sweep
-from service.store import FINAL_STATES, Measurement
+from service.recipes import expand_request
+from service.store import FINAL_STATES, Measurement, NotFound
 
 router = APIRouter(prefix="/measurements", tags=["measurements"], dependencies=READ, responses=READ_RESPONSES)
 _MEASUREMENTS = TypeAdapter(list[MeasurementOut])
@@ -70,8 +71,14 @@ def measurement_out(m: Measurement) -> MeasurementOut:
     responses=responses(400, 401, 403, 413, 422, 429),
 )
 def create_measurement(req: MeasurementRequest, response: Response, service: ServiceDep) -> MeasurementOut:
-    """Queue a measurement. The sweep is checked against the rig (travel limits with the run-up,
-    maximum speed, ``[sweep] max_duration_s``); a refusal is a 422 naming the field."""
+    """Queue a measurement: free form (``target``, ``sweep``, ``roi``, ``options``) or a part of a
+    recipe (``recipe``, ``part_id``, optionally ``recipe_version``, ``part_temperature_c``,
+    ``temperature_uncertainty_c``, ``operator``; the recipe supplies the rest, and giving ``target``,
+    ``sweep``, ``roi`` or ``options`` beside it is a 422). The sweep is checked against the rig
+    (travel limits with the run-up, maximum speed, ``[sweep] max_duration_s``); a refusal is a 422
+    naming the field. Nothing is stored for a refused request."""
+    if req.recipe is not None:
+        req = _expand(req, service)
     try:
         resolve_sweep(req.sweep, service.config)
     except RequestFieldError as exc:
@@ -79,6 +86,8 @@ def create_measurement(req: MeasurementRequest, response: Response, service: Ser
     if service.validate is not None:
         service.validate(req)
     m = service.runner.submit(req)
+    if req.recipe is not None and req.recipe_version is not None and req.part_id is not None:
+        service.recipes.link(m.id, req.recipe, req.recipe_version, req.part_id, req.operator)
     response.headers["Location"] = f"/api/v1/measurements/{m.id}"
     return measurement_out(m)
 
@@ -116,6 +125,26 @@ async def get_measurement(mid: MeasurementId, service: ServiceDep) -> Response:
 )
 def cancel_measurement(mid: MeasurementId, service: ServiceDep) -> MeasurementOut:
     return measurement_out(service.runner.cancel(mid))
+
+
+def _expand(req: MeasurementRequest, service: Service) -> MeasurementRequest:
+    """A part's request with its recipe's measurement filled in (:func:`service.recipes.expand_request`)."""
+    assert req.recipe is not None
+    try:
+        recipe = (
+            service.recipes.latest(req.recipe)
+            if req.recipe_version is None
+            else service.recipes.version(req.recipe, req.recipe_version)
+        )
+    except NotFound as exc:
+        field = "recipe_version" if req.recipe_version is not None and service.recipes.exists(req.recipe) else "recipe"
+        raise RequestFieldError([(("body", field), str(exc))]) from None
+    if recipe.retired:
+        raise RequestFieldError([(("body", "recipe"), f"recipe {req.recipe!r} is retired")])
+    try:
+        return expand_request(req, recipe, recipe.version)
+    except RequestFieldError as exc:
+        raise exc.under("body") from None
 
 
 def _file(service: Service, mid: str, which: str) -> str:
