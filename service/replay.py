@@ -10,7 +10,7 @@ the service rebuilt from such a file on restart (``recovered`` gives its recover
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 from drivers.lms100.errors import CoLaError
 from drivers.lms100.messages import ScanDataEvent, ScanDataReply
@@ -26,9 +26,14 @@ class ReplayError(ServiceError):
     pass
 
 
-def replay(path: str | Path) -> dict[str, Any]:
+def replay(path: str | Path | BinaryIO, kinematics: dict[str, Any] | None = None) -> dict[str, Any]:
     """Replay ``path``; returns ``{"result", "stored", "truncated", "recovered", "bad_telegrams",
-    "reproduced", "max_abs_diff"}`` (``recovered``: the recovery record of a log rebuilt on restart)."""
+    "reproduced", "max_abs_diff"}`` (``recovered``: the recovery record of a log rebuilt on restart).
+
+    ``path`` may be an open seekable binary file (a log fetched from an archive). ``kinematics``:
+    ``[kinematics]`` keys that replace the logged configuration's (a new rig calibration, see
+    :func:`kinematics_of_calibration`); the result is then a re-evaluation, not a reproduction.
+    """
     from service.rig import finish_measurement
 
     status = mcaplog.LogReadStatus()
@@ -42,6 +47,9 @@ def replay(path: str | Path) -> dict[str, Any]:
     for msg in mcaplog.iter_log(path, status):
         if msg.topic == mcaplog.TOPIC_MEASUREMENT:
             meta = msg.decode()
+            if kinematics is not None:
+                logged = meta["config"].get("kinematics", {})
+                meta["config"] = {**meta["config"], "kinematics": {**logged, **kinematics}}
             cfg = parse_config(meta["config"], source=f"{path} (logged configuration)")
             recorder = SweepRecorder(cfg.calibration, None, meta["dialect"])
             codec = CoLaConnection(meta["dialect"], role="client")
@@ -91,10 +99,24 @@ def replay(path: str | Path) -> dict[str, Any]:
         "reproduced": None,
         "max_abs_diff": None,
     }
-    if stored is not None and stored.get("state") == "done":
+    if stored is not None and stored.get("state") == "done" and kinematics is None:
         diff = max_abs_diff(stored["result"], result)
         out["max_abs_diff"] = diff
         out["reproduced"] = diff is not None and diff <= 1e-9
+    return out
+
+
+def kinematics_of_calibration(calibration: dict[str, Any]) -> dict[str, Any]:
+    """The ``[kinematics]`` keys of a rig calibration (``lrms calibrate --out``'s JSON): ``p_m`` and
+    :attr:`lrms.kinematics.RigCalibration.MODEL_KEYS` from its estimated rig model, in the
+    table's units (the device conventions and ``world_from_rig`` stay the logged ones)."""
+    from lrms.calibration import CalibrationResult
+    from lrms.kinematics import RigCalibration
+
+    model = CalibrationResult.from_dict(calibration).model
+    out: dict[str, Any] = {"p_m": model.p}
+    for key, (field, factor) in RigCalibration.MODEL_KEYS.items():
+        out[key] = float(getattr(model, field)) / factor
     return out
 
 

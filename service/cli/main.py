@@ -31,6 +31,7 @@ COMMANDS: dict[tuple[str, ...], str] = {
     ("serve",): "service.cli.serve",
     ("measure",): "service.cli.measure",
     ("replay",): "service.cli.replay",
+    ("reprocess",): "service.cli.reprocess",
     ("sim", "scanner"): "service.cli.sim_scanner",
     ("sim", "motor"): "service.cli.sim_motor",
 }
