@@ -4,7 +4,7 @@ Run: ``.venv/bin/python -m bench.bench_reprocess [--sweeps 200] [--distinct 10] 
 
 The archive is made once (into a temporary folder, or ``--dir`` to keep and reuse it): ``--distinct``
 short sweeps recorded on the built-in simulated rig (seed 003's cylinder, -5..20 deg at 20 deg/s,
-about 31 scans and 20 000 mapped points each; :data:`service.simarchive.SHORT_SWEEP`), then copied
+about 32 scans and 20 000 mapped points each; :data:`service.simarchive.SHORT_SWEEP`), then copied
 under new measurement ids up to ``--sweeps`` (the simulator runs in real time, 3 s a sweep). The
 same archive is then re-processed three ways in this run, each into a result-version store of
 its own (so each really fits every sweep): the serial loop in this process (the baseline), a

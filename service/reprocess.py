@@ -54,12 +54,15 @@ def result_engine(config: RigConfig) -> Engine:
 
 @dataclass(frozen=True)
 class Archived:
-    """A measurement to re-process: its id, creation time, raw-log path and original result."""
+    """A measurement to re-process: its id, creation time, raw-log path, and what the summary
+    compares of its original result (diameter, decision; the whole result stays in the store: an
+    archive of millions of results would not fit in memory)."""
 
     measurement_id: str
     created_at: float
     raw_path: str
-    original: dict[str, Any] | None
+    original_diameter_m: float | None = None
+    original_decision: str | None = None
 
 
 def parse_since(value: str) -> float:
@@ -90,7 +93,10 @@ def archived_measurements(engine: Engine, since: float | None = None, recipe: st
     for mid, created, request, result, raw_path in rows:
         if recipe is not None and _json(request).get("recipe") != recipe:
             continue
-        out.append(Archived(str(mid), float(created), str(raw_path), _json(result) if result is not None else None))
+        original = _json(result) if result is not None else None
+        out.append(
+            Archived(str(mid), float(created), str(raw_path), diameter_and_u(original)[0], decision_of(original))
+        )
     return out
 
 
@@ -382,13 +388,13 @@ def reprocess(
 
 
 def _compare(summary: Summary, m: Archived, new: dict[str, Any], version: int) -> None:
-    d0, _ = diameter_and_u(m.original)
+    d0 = m.original_diameter_m
     d1, u1 = diameter_and_u(new)
     if d0 is not None and d1 is not None and u1 is not None and abs(d1 - d0) > u1:
         summary.diameter_changes.append(
             {"measurement_id": m.measurement_id, "version": version, "original_m": d0, "new_m": d1, "u_m": u1}
         )
-    c0, c1 = decision_of(m.original), decision_of(new)
+    c0, c1 = m.original_decision, decision_of(new)
     if c0 != c1 and (c0 is not None or c1 is not None):
         summary.decision_changes.append(
             {"measurement_id": m.measurement_id, "version": version, "original": c0, "new": c1}
@@ -421,7 +427,7 @@ def write_parquet(path: str | Path, store: VersionStore, measurements: Iterable[
         )
     }
     for v in versions:
-        original = by_id[v.measurement_id].original
+        m = by_id[v.measurement_id]
         d, u = diameter_and_u(v.result)
         cols["measurement_id"].append(v.measurement_id)
         cols["version"].append(v.version)
@@ -432,8 +438,8 @@ def write_parquet(path: str | Path, store: VersionStore, measurements: Iterable[
         cols["diameter_m"].append(d)
         cols["expanded_u_m"].append(u)
         cols["decision"].append(decision_of(v.result))
-        cols["original_diameter_m"].append(diameter_and_u(original)[0])
-        cols["original_decision"].append(decision_of(original))
+        cols["original_diameter_m"].append(m.original_diameter_m)
+        cols["original_decision"].append(m.original_decision)
         cols["result_json"].append(json.dumps(v.result))
     schema = pa.schema(
         [

@@ -20,7 +20,7 @@ from service.config import DEFAULT_RIG, RigConfig, parse_toml
 from service.errors import ServiceError
 from service.store import Measurement, Store
 
-#: A short sweep over seed 003's cylinder (-5..20 deg at 20 deg/s: about 31 scans, 3 s).
+#: A short sweep over seed 003's cylinder (-5..20 deg at 20 deg/s: about 32 scans, 3 s).
 SHORT_SWEEP: dict[str, Any] = {"start_deg": -5.0, "stop_deg": 20.0, "speed_deg_s": 20.0}
 
 
