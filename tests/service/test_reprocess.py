@@ -112,6 +112,9 @@ def test_local_cluster_refits_the_archive_and_a_rerun_skips_everything(archive: 
             assert v.result["diameter_m"] == pytest.approx(original.result["diameter_m"], abs=1e-9)
             if v.measurement_id not in (moved, decided):
                 assert store.get(v.measurement_id).result == original.result
+        # the originals stay as they were, also where the re-fit disagrees
+        assert store.get(moved).result["diameter_m"] == good[moved].result["diameter_m"] + 0.01
+        assert store.get(decided).result["decision"] == "conforms"
     finally:
         store.close()
 
@@ -124,8 +127,16 @@ def test_local_cluster_refits_the_archive_and_a_rerun_skips_everything(archive: 
             assert r["diameter_m"] == pytest.approx(r["original_diameter_m"], abs=1e-9)
         assert 0 < r["expanded_u_m"] < 0.01 and json.loads(r["result_json"])["diameter_m"] == r["diameter_m"]
 
-    # a second run finds every good log stored and fits nothing; the corrupt ones fail again
-    status, again, _ = _cli("--data", str(data), "--workers", "2", "--archive", url, "--json")
+    # a second run, on an existing cluster given by its scheduler's address, finds every good log
+    # stored and fits nothing; the corrupt ones fail again
+    from distributed import LocalCluster
+
+    with LocalCluster(
+        n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
+    ) as cluster:
+        address = cluster.scheduler_address
+        assert address.startswith("tcp://127.0.0.1:")
+        status, again, _ = _cli("--data", str(data), "--scheduler", address, "--archive", url, "--json")
     assert status == 2
     assert again["done"] == 0 and again["skipped"] == 3 and len(again["failed"]) == 2
     assert len(VersionStore(engine).versions()) == 3
