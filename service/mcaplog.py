@@ -29,6 +29,7 @@ service does so on restart).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import queue
@@ -452,18 +453,26 @@ class LogReadStatus:
     reason: str = ""
 
 
-def iter_log(path: str | Path, status: LogReadStatus | None = None) -> Iterator[LoggedMessage]:
+def iter_log(path: str | Path | BinaryIO, status: LogReadStatus | None = None) -> Iterator[LoggedMessage]:
     """Every message of a raw log in file order, also from a file cut short by a crash.
 
     A complete file and a truncated one read the same way: messages of every complete chunk,
-    then a stop where the file ends. ``status.truncated`` tells which case it was.
+    then a stop where the file ends. ``status.truncated`` tells which case it was. ``path`` may
+    also be an open binary file (read from its start, left open): a log fetched from an archive
+    (``lrms reprocess`` reads through fsspec).
     """
     st = status if status is not None else LogReadStatus()
-    try:
-        fh = open(path, "rb")  # noqa: SIM115
-    except OSError as exc:
-        raise McapLogError(f"cannot open raw log {path}: {exc.strerror or exc}") from None
-    with fh:
+    owned = isinstance(path, str | Path)
+    if isinstance(path, str | Path):
+        try:
+            fh: BinaryIO = open(path, "rb")  # noqa: SIM115
+        except OSError as exc:
+            raise McapLogError(f"cannot open raw log {path}: {exc.strerror or exc}") from None
+    else:
+        fh = path
+        fh.seek(0)
+        path = str(getattr(fh, "name", "") or "(raw log stream)")
+    with fh if owned else contextlib.nullcontext(fh):
         if fh.read(8) != MCAP_MAGIC:
             raise McapLogError(f"{path} is not an MCAP file")
         fh.seek(0)

@@ -7,10 +7,12 @@ left running (:meth:`service.jobs.JobRunner.start`); the log is then served as t
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 from mcap.reader import make_reader
 from mcap.records import Attachment, Channel, Footer, Header, Message, Metadata, Schema
@@ -157,10 +159,12 @@ def recover_log(path: str | Path, compression: str = "zstd") -> Recovery:
     return result
 
 
-def recovery_info(path: str | Path) -> dict[str, str] | None:
-    """The :data:`RECOVERY_METADATA` record of a log :func:`recover_log` rebuilt, else None."""
+def recovery_info(path: str | Path | BinaryIO) -> dict[str, str] | None:
+    """The :data:`RECOVERY_METADATA` record of a log :func:`recover_log` rebuilt, else None
+    (``path`` may be an open, seekable binary file, left open)."""
     try:
-        with open(path, "rb") as fh:
+        with open(path, "rb") if isinstance(path, str | Path) else contextlib.nullcontext(path) as fh:
+            fh.seek(0)
             for record in make_reader(fh).iter_metadata():
                 if record.name == RECOVERY_METADATA:
                     return dict(record.metadata)

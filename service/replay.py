@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, BinaryIO
 
 import numpy as np
 from numpy.typing import NDArray
@@ -57,9 +57,13 @@ class LoadedLog:
         return ResolvedSweep.model_validate(self.meta["sweep"])
 
 
-def load_log(path: str | Path) -> LoadedLog:
-    """Read ``path`` into a :class:`LoadedLog` (:class:`ReplayError` if it is no measurement log
-    or its sweep never started)."""
+def load_log(path: str | Path | BinaryIO, kinematics: dict[str, Any] | None = None) -> LoadedLog:
+    """Read ``path`` (a file, or an open seekable binary stream) into a :class:`LoadedLog`
+    (:class:`ReplayError` if it is no measurement log or its sweep never started).
+
+    ``kinematics``: ``[kinematics]`` keys that replace the logged configuration's (a new rig
+    calibration, :func:`kinematics_of_calibration`); the calibration the measurement logged is then
+    not used (nor recorded in the result)."""
     status = mcaplog.LogReadStatus()
     meta: dict[str, Any] | None = None
     stored: dict[str, Any] | None = None
@@ -71,6 +75,10 @@ def load_log(path: str | Path) -> LoadedLog:
     for msg in mcaplog.iter_log(path, status):
         if msg.topic == mcaplog.TOPIC_MEASUREMENT:
             meta = msg.decode()
+            if kinematics is not None:
+                logged = meta["config"].get("kinematics", {})
+                meta["config"] = {**meta["config"], "kinematics": {**logged, **kinematics}}
+                meta["calibration"] = None
             cfg = parse_config(meta["config"], source=f"{path} (logged configuration)")
             calibration = logged_calibration(meta, path)
             recorder = SweepRecorder(rig_kinematics(cfg, calibration), None, meta["dialect"])
@@ -110,12 +118,17 @@ def load_log(path: str | Path) -> LoadedLog:
     return LoadedLog(meta, cfg, logged_calibration(meta, path), recorder, t_start, t_end, stored, status.truncated, bad)
 
 
-def replay(path: str | Path) -> dict[str, Any]:
+def replay(path: str | Path | BinaryIO, kinematics: dict[str, Any] | None = None) -> dict[str, Any]:
     """Replay ``path``; returns ``{"result", "stored", "truncated", "recovered", "bad_telegrams",
-    "reproduced", "max_abs_diff"}`` (``recovered``: the recovery record of a log rebuilt on restart)."""
+    "reproduced", "max_abs_diff"}`` (``recovered``: the recovery record of a log rebuilt on restart).
+
+    ``path`` may be an open seekable binary file (a log fetched from an archive). ``kinematics``:
+    ``[kinematics]`` keys that replace the logged configuration's (a new rig calibration, see
+    :func:`kinematics_of_calibration`); the result is then a re-evaluation, not a reproduction.
+    """
     from service.rig import finish_measurement
 
-    log = load_log(path)
+    log = load_log(path, kinematics)
     request = MeasurementRequest.model_validate(log.meta["request"])
     _, result = finish_measurement(
         log.recorder, log.config, request, log.sweep, log.t_start, log.t_end, log.calibration
@@ -132,7 +145,7 @@ def replay(path: str | Path) -> dict[str, Any]:
         "reproduced": None,
         "max_abs_diff": None,
     }
-    if stored is not None and stored.get("state") == "done":
+    if stored is not None and stored.get("state") == "done" and kinematics is None:
         diff = max_abs_diff(stored["result"], result)
         out["max_abs_diff"] = diff
         out["reproduced"] = diff is not None and diff <= 1e-9
@@ -180,7 +193,7 @@ def log_readings(path: str | Path) -> LoggedReadings:
     return LoggedReadings(mapped.ranges, mapped.alpha, mapped.beta, omega, log.recorder.calibration.rig)
 
 
-def logged_calibration(meta: dict[str, Any], path: str | Path) -> StoredCalibration | None:
+def logged_calibration(meta: dict[str, Any], path: str | Path | BinaryIO) -> StoredCalibration | None:
     """The calibration the logged measurement used (its ``/lrms/measurement`` record), or None."""
     from lrms.calibration import CalibrationError
     from service.calstore import StoredCalibration
@@ -222,3 +235,17 @@ def max_abs_diff(a: Any, b: Any) -> float | None:
     if isinstance(a, int | float) and isinstance(b, int | float):
         return abs(float(a) - float(b))
     return 0.0 if a == b else None
+
+
+def kinematics_of_calibration(calibration: dict[str, Any]) -> dict[str, Any]:
+    """The ``[kinematics]`` keys of a rig calibration (``lrms calibrate --out``'s JSON): ``p_m`` and
+    :attr:`lrms.kinematics.RigCalibration.MODEL_KEYS` from its estimated rig model, in the
+    table's units (the device conventions and ``world_from_rig`` stay the logged ones)."""
+    from lrms.calibration import CalibrationResult
+    from lrms.kinematics import RigCalibration
+
+    model = CalibrationResult.from_dict(calibration).model
+    out: dict[str, Any] = {"p_m": model.p}
+    for key, (field, factor) in RigCalibration.MODEL_KEYS.items():
+        out[key] = float(getattr(model, field)) / factor
+    return out

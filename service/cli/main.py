@@ -33,6 +33,7 @@ COMMANDS: dict[tuple[str, ...], str] = {
     ("replay",): "service.cli.replay",
     ("db", "upgrade"): "service.cli.db",
     ("report",): "service.cli.report",
+    ("reprocess",): "service.cli.reprocess",
     ("sim", "scanner"): "service.cli.sim_scanner",
     ("sim", "motor"): "service.cli.sim_motor",
     ("recipe", "import"): "service.cli.recipe_import",

@@ -11,7 +11,21 @@ first SQLite store did; times are epoch seconds; flags are integers 0/1.
 
 from __future__ import annotations
 
-from sqlalchemy import BigInteger, Boolean, Column, Float, ForeignKey, Index, Integer, MetaData, String, Table, Text
+from sqlalchemy import (
+    JSON,
+    BigInteger,
+    Boolean,
+    Column,
+    Float,
+    ForeignKey,
+    Index,
+    Integer,
+    MetaData,
+    String,
+    Table,
+    Text,
+    UniqueConstraint,
+)
 from sqlalchemy.dialects.sqlite import REAL
 
 from service.db import RIG_ID_LENGTH
@@ -130,3 +144,33 @@ recipe_measurements = Table(
     Index("recipe_measurements_by_recipe", "recipe", "created_at"),
 )
 """A part's measurement -> its recipe, version, part id and operator (the recipe's history)."""
+
+result_versions = Table(
+    "result_versions",
+    metadata,
+    Column("id", Integer, primary_key=True, autoincrement=True),
+    Column("measurement_id", String(64), nullable=False),
+    Column("version", Integer, nullable=False),
+    Column("created_at", Double, nullable=False),
+    Column("software_version", String(64), nullable=False),
+    Column("calibration_id", String(64), nullable=False),
+    Column("raw_sha256", String(64), nullable=False),
+    Column("result", JSON, nullable=False),
+    Index("result_versions_measurement", "measurement_id"),
+    UniqueConstraint("measurement_id", "version", name="result_versions_number"),
+    UniqueConstraint(
+        "measurement_id", "raw_sha256", "calibration_id", "software_version", name="result_versions_inputs"
+    ),
+)
+"""Re-evaluations of archived raw logs (:mod:`service.versionstore`, ``lrms reprocess``); the original
+result stays in ``measurements``."""
+
+reprocess_calibrations = Table(
+    "reprocess_calibrations",
+    metadata,
+    Column("id", String(64), primary_key=True),
+    Column("created_at", Double, nullable=False),
+    Column("source", String(1024), nullable=False, default=""),
+    Column("calibration", JSON, nullable=False),
+)
+"""Calibration files given to ``lrms reprocess``, kept under their content hash."""

@@ -1,0 +1,261 @@
+"""``lrms reprocess``: archived raw logs of the simulated rig re-fitted on a real Dask LocalCluster
+(2 worker processes on 127.0.0.1), written as new result versions; a re-run skips all; corrupt and
+cut-short logs are failed tasks with their reasons while the rest completes; Parquet output;
+fsspec archives (``memory://``) and a new calibration through the in-process loop."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sqlite3
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from service import reprocess as rp
+from service import simarchive
+from service.store import Store
+from service.versionstore import LOGGED_CALIBRATION, VersionStore
+from tests.conftest import REPO
+
+LRMS = [sys.executable, "-m", "service.cli.main"]
+
+
+@pytest.fixture(scope="module")
+def archive(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """Three short simulated sweeps, plus a log cut short and a file that is no MCAP log."""
+    root = tmp_path_factory.mktemp("archive")
+    good = simarchive.record(root, 3)
+    cfg = simarchive.sim_config(root)
+    store = Store(cfg.storage.db_path)
+    bad: dict[str, str] = {}
+    try:
+        for kind in ("truncated", "garbage"):
+            m = store.create_measurement(good[0].request)
+            raw = cfg.storage.raw_dir / f"{m.id}.mcap"
+            assert good[0].raw_path is not None and good[0].result is not None
+            data = Path(good[0].raw_path).read_bytes()
+            raw.write_bytes(data[: len(data) // 2] if kind == "truncated" else b"not a log at all" * 100)
+            store.start(m.id)
+            store.set_paths(m.id, raw_path=str(raw))
+            store.finish(m.id, good[0].result)
+            bad[kind] = m.id
+    finally:
+        store.close()
+    return {"root": root, "good": {m.id: m for m in good}, "bad": bad, "config": cfg}
+
+
+def _copy(archive: dict[str, Any], tmp_path: Path) -> Path:
+    dst = tmp_path / "data"
+    shutil.copytree(archive["root"], dst)
+    return dst
+
+
+def _cli(*args: str) -> tuple[int, dict[str, Any], str]:
+    proc = subprocess.run([*LRMS, "reprocess", *args], cwd=REPO, capture_output=True, text=True, timeout=240)
+    try:
+        out = json.loads(proc.stdout)
+    except json.JSONDecodeError:
+        raise AssertionError(f"no JSON summary: {proc.stdout}\n{proc.stderr}") from None
+    return proc.returncode, out, proc.stderr
+
+
+def test_local_cluster_refits_the_archive_and_a_rerun_skips_everything(archive: dict[str, Any], tmp_path: Path) -> None:
+    import pyarrow.parquet as pq
+
+    data = _copy(archive, tmp_path)
+    good, bad = archive["good"], archive["bad"]
+    parquet = tmp_path / "versions.parquet"
+    # two originals made different from what their logs give: one diameter 10 mm off, one decision
+    moved, decided = sorted(good)[:2]
+    with sqlite3.connect(data / "lrms.sqlite") as db:
+        for mid, patch in (
+            (moved, {"diameter_m": good[moved].result["diameter_m"] + 0.01}),
+            (decided, {"decision": "conforms"}),
+        ):
+            db.execute(
+                "UPDATE measurements SET result = ? WHERE id = ?", (json.dumps({**good[mid].result, **patch}), mid)
+            )
+    # the raw logs read from the archive folder by an fsspec URL (file://), not from the stored paths
+    url = (data / "raw").as_uri()
+    status, out, err = _cli(
+        "--data", str(data), "--workers", "2", "--archive", url, "--parquet", str(parquet), "--json"
+    )
+    assert status == 2, err  # some tasks failed: the run completes and says so
+    assert out["total"] == 5 and out["done"] == 3 and out["skipped"] == 0
+    reasons = {f["measurement_id"]: f["reason"] for f in out["failed"]}
+    assert set(reasons) == set(bad.values())
+    assert "cut short" in reasons[bad["truncated"]]
+    assert "not an MCAP file" in reasons[bad["garbage"]]
+    # the same log and software reproduce the rig's result; the originals made different are reported
+    assert [c["measurement_id"] for c in out["diameter_changes"]] == [moved]
+    change = out["diameter_changes"][0]
+    assert change["original_m"] - change["new_m"] == pytest.approx(0.01, abs=1e-9) and change["u_m"] < 0.01
+    assert out["decision_changes"] == [{"measurement_id": decided, "version": 1, "original": "conforms", "new": None}]
+    assert "5/5: 3 re-fitted, 0 skipped, 2 failed" in err  # the progress bar on stderr
+
+    cfg = archive["config"]
+    engine = rp.result_engine(cfg.model_copy(update={"storage": cfg.storage.model_copy(update={"dir": data})}))
+    versions = VersionStore(engine).versions()
+    assert sorted(v.measurement_id for v in versions) == sorted(good)
+    store = Store(data / "lrms.sqlite")
+    try:
+        for v in versions:
+            original = good[v.measurement_id]
+            assert v.version == 1 and v.calibration_id == LOGGED_CALIBRATION and v.software_version == "0.1.0"
+            assert len(v.raw_sha256) == 64
+            # the same log, the same code: the re-fit reproduces the rig's own result, which stays untouched
+            assert v.result["diameter_m"] == pytest.approx(original.result["diameter_m"], abs=1e-9)
+            if v.measurement_id not in (moved, decided):
+                assert store.get(v.measurement_id).result == original.result
+        # the originals stay as they were, also where the re-fit disagrees
+        assert store.get(moved).result["diameter_m"] == good[moved].result["diameter_m"] + 0.01
+        assert store.get(decided).result["decision"] == "conforms"
+    finally:
+        store.close()
+
+    table = pq.read_table(parquet)
+    assert table.num_rows == 3
+    rows = table.to_pylist()
+    assert {r["measurement_id"] for r in rows} == set(good)
+    for r in rows:
+        if r["measurement_id"] != moved:
+            assert r["diameter_m"] == pytest.approx(r["original_diameter_m"], abs=1e-9)
+        assert 0 < r["expanded_u_m"] < 0.01 and json.loads(r["result_json"])["diameter_m"] == r["diameter_m"]
+
+    # a second run, on an existing cluster given by its scheduler's address, finds every good log
+    # stored and fits nothing; the corrupt ones fail again
+    from distributed import LocalCluster
+
+    with LocalCluster(
+        n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
+    ) as cluster:
+        address = cluster.scheduler_address
+        assert address.startswith("tcp://127.0.0.1:")
+        status, again, _ = _cli("--data", str(data), "--scheduler", address, "--archive", url, "--json")
+    assert status == 2
+    assert again["done"] == 0 and again["skipped"] == 3 and len(again["failed"]) == 2
+    assert len(VersionStore(engine).versions()) == 3
+    engine.dispose()
+
+
+def _calibration(p: float) -> dict[str, Any]:
+    from lrms.calibration import CalibrationResult, Identifiability
+    from lrms.kinematics import RigModel
+
+    n = len(RigModel.NAMES)
+    return CalibrationResult(
+        model=RigModel(p=p),
+        nominal=RigModel(),
+        covariance=np.zeros((n, n)),
+        estimated=("p",),
+        identifiability=Identifiability(held={}, rank=1, condition=1.0),
+        surfaces=(),
+        residuals={},
+        artefact={},
+        created="2026-01-01T00:00:00Z",
+    ).to_dict()
+
+
+def test_fsspec_archive_and_a_new_calibration_make_new_versions(archive: dict[str, Any], tmp_path: Path) -> None:
+    import fsspec
+
+    data = _copy(archive, tmp_path)
+    cfg = archive["config"]
+    cfg = cfg.model_copy(update={"storage": cfg.storage.model_copy(update={"dir": data})})
+    good = archive["good"]
+    # the archive on another file system: fsspec's in-memory one (this process only: the serial loop)
+    mem = fsspec.filesystem("memory")
+    for m in good.values():
+        mem.pipe(f"/lrms-test-archive/{Path(m.raw_path).name}", Path(m.raw_path).read_bytes())
+    engine = rp.result_engine(cfg)
+    store = VersionStore(engine)
+    measurements = [m for m in rp.archived_measurements(engine) if m.measurement_id in good]
+    try:
+        first = rp.reprocess(store, measurements, rp.serial_executor, archive="memory://lrms-test-archive")
+        assert first.done == 3 and not first.failed
+        # a calibration that finds the optical centre 0.1 m further from the axis (p = 0.2 m): the
+        # service maps with its p, every diameter moves (by about 1 mm, within U)
+        cal_file = tmp_path / "cal.json"
+        cal_file.write_text(json.dumps(_calibration(p=0.2)))
+        cal_id, kinematics = rp.load_calibration(str(cal_file), store)
+        assert kinematics["p_m"] == 0.2 and kinematics["range_scale_ppm"] == 0.0
+        second = rp.reprocess(
+            store,
+            measurements,
+            rp.serial_executor,
+            archive="memory://lrms-test-archive",
+            calibration_id=cal_id,
+            kinematics=kinematics,
+        )
+        assert second.done == 3 and second.skipped == 0 and not second.failed
+        assert second.diameter_changes == []
+        # the calibration is kept under its id: a prefix names it again, and the run is then a no-op
+        again_id, again_kin = rp.load_calibration(cal_id[:8], store)
+        assert (again_id, again_kin) == (cal_id, kinematics)
+        third = rp.reprocess(
+            store,
+            measurements,
+            rp.serial_executor,
+            archive="memory://lrms-test-archive",
+            calibration_id=again_id,
+            kinematics=again_kin,
+        )
+        assert third.done == 0 and third.skipped == 3
+        by_version = {(v.measurement_id, v.version): v for v in store.versions()}
+        assert len(by_version) == 6
+        for mid in good:
+            assert by_version[(mid, 1)].calibration_id == LOGGED_CALIBRATION
+            assert by_version[(mid, 2)].calibration_id == cal_id
+            assert by_version[(mid, 1)].raw_sha256 == by_version[(mid, 2)].raw_sha256
+            d1, d2 = by_version[(mid, 1)].result["diameter_m"], by_version[(mid, 2)].result["diameter_m"]
+            assert 1e-5 < abs(d2 - d1) < by_version[(mid, 2)].result["uncertainty"]["expanded_m"]
+        # a log missing from the archive is a failed task with the reason
+        mem.rm(f"/lrms-test-archive/{Path(next(iter(good.values())).raw_path).name}")
+        fourth = rp.reprocess(
+            store, measurements, rp.serial_executor, archive="memory://lrms-test-archive", software_version="0.1.0"
+        )
+        assert fourth.skipped == 2 and len(fourth.failed) == 1 and "not found" in fourth.failed[0]["reason"]
+    finally:
+        mem.rm("/lrms-test-archive", recursive=True)
+        engine.dispose()
+
+
+def test_a_worker_of_another_software_version_refuses(archive: dict[str, Any]) -> None:
+    m = next(iter(archive["good"].values()))
+    out = rp.reprocess_one(rp.Task(m.id, m.raw_path, software_version="9.9.9"))
+    assert out.status == "failed" and "9.9.9" in out.reason
+
+
+def test_versions_are_numbered_and_unique_per_inputs(tmp_path: Path) -> None:
+    from sqlalchemy import create_engine
+
+    engine = create_engine(f"sqlite:///{tmp_path / 'v.sqlite'}")
+    store = VersionStore(engine)
+    assert store.add("m1", "a" * 64, "logged", "0.1.0", {"diameter_m": 0.1}) == 1
+    assert store.add("m1", "a" * 64, "logged", "0.1.0", {"diameter_m": 0.2}) is None  # same inputs: kept once
+    assert store.add("m1", "a" * 64, "logged", "0.2.0", {"diameter_m": 0.2}) == 2
+    assert store.add("m2", "a" * 64, "logged", "0.1.0", {"diameter_m": 0.3}) == 1
+    assert [(v.measurement_id, v.version, v.result["diameter_m"]) for v in store.versions()] == [
+        ("m1", 1, 0.1),
+        ("m1", 2, 0.2),
+        ("m2", 1, 0.3),
+    ]
+    assert store.done_hashes(["m1", "m2", "m3"], "logged", "0.1.0") == {"m1": {"a" * 64}, "m2": {"a" * 64}}
+    engine.dispose()
+
+
+def test_decisions_and_since() -> None:
+    assert rp.decision_of({"decision": "conforms"}) == "conforms"
+    assert rp.decision_of({"decision": {"decision": "does_not_conform"}}) == "does_not_conform"
+    assert rp.decision_of({"conformity": {"decision": "ambiguous"}}) == "ambiguous"
+    assert rp.decision_of({"diameter_m": 0.1}) is None
+    assert rp.parse_since("2026-01-01") == 1767225600.0
+    with pytest.raises(rp.ReprocessError, match="ISO date"):
+        rp.parse_since("yesterday")
+    assert rp.log_url("s3://bucket/raw/", "/var/lrms/raw/abc.mcap") == "s3://bucket/raw/abc.mcap"
+    assert rp.log_url(None, "/var/lrms/raw/abc.mcap") == "/var/lrms/raw/abc.mcap"
