@@ -232,9 +232,9 @@ def test_a_worker_of_another_software_version_refuses(archive: dict[str, Any]) -
 
 
 def test_versions_are_numbered_and_unique_per_inputs(tmp_path: Path) -> None:
-    from sqlalchemy import create_engine
+    from service.store import Store
 
-    engine = create_engine(f"sqlite:///{tmp_path / 'v.sqlite'}")
+    engine = Store(tmp_path / "v.sqlite").engine  # the result store's database, migrated
     store = VersionStore(engine)
     assert store.add("m1", "a" * 64, "logged", "0.1.0", {"diameter_m": 0.1}) == 1
     assert store.add("m1", "a" * 64, "logged", "0.1.0", {"diameter_m": 0.2}) is None  # same inputs: kept once
