@@ -64,6 +64,12 @@ class Archived:
     raw_path: str
     original_diameter_m: float | None = None
     original_decision: str | None = None
+    part: dict[str, Any] | None = None
+    """A recipe measurement's part (``part_id``, ``operator``, ``part_temperature_c``,
+    ``temperature_uncertainty_c``), from its original result; None for a free-form measurement."""
+    recipe: dict[str, Any] | None = None
+    """The recipe version it was measured with (JSON), to decide the re-fitted result again."""
+    recipe_version: int | None = None
 
 
 def parse_since(value: str) -> float:
@@ -91,14 +97,49 @@ def archived_measurements(engine: Engine, since: float | None = None, recipe: st
     with engine.connect() as conn:
         rows = conn.execute(text(q), params).all()
     out = []
+    recipes: dict[tuple[str, int], dict[str, Any]] = {}
     for mid, created, request, result, raw_path in rows:
         if recipe is not None and _json(request).get("recipe") != recipe:
             continue
         original = _json(result) if result is not None else None
+        part, recipe_json, version = _part_of(engine, original, recipes)
         out.append(
-            Archived(str(mid), float(created), str(raw_path), diameter_and_u(original)[0], decision_of(original))
+            Archived(
+                str(mid),
+                float(created),
+                str(raw_path),
+                diameter_and_u(original)[0],
+                decision_of(original),
+                part,
+                recipe_json,
+                version,
+            )
         )
     return out
+
+
+def _part_of(
+    engine: Engine, original: dict[str, Any] | None, cache: dict[tuple[str, int], dict[str, Any]]
+) -> tuple[dict[str, Any] | None, dict[str, Any] | None, int | None]:
+    """A recipe measurement's part fields and its recipe version (from the recipe store), else Nones."""
+    part = (original or {}).get("part")
+    if not isinstance(part, dict) or "recipe" not in part or "recipe_version" not in part:
+        return None, None, None
+    key = (str(part["recipe"]), int(part["recipe_version"]))
+    if key not in cache:
+        from service.recipes import Recipe
+        from service.recipestore import RecipeStore
+
+        stored = RecipeStore(engine).version(*key)  # the recipe with its version's own fields
+        cache[key] = stored.model_dump(mode="json", include=set(Recipe.model_fields))
+    thermal = (original or {}).get("thermal") or {}
+    fields = {
+        "part_id": part.get("part_id"),
+        "operator": part.get("operator"),
+        "part_temperature_c": thermal.get("part_temperature_c"),
+        "temperature_uncertainty_c": thermal.get("temperature_uncertainty_c"),
+    }
+    return fields, cache[key], key[1]
 
 
 def _json(value: Any) -> dict[str, Any]:
@@ -126,6 +167,10 @@ class Task:
     """``[kinematics]`` keys replacing the logged ones (None: the rig model in the log)."""
     done_hashes: frozenset[str] = frozenset()
     """Raw-log hashes of this measurement already evaluated with this calibration and software."""
+    part: dict[str, Any] | None = None
+    recipe: dict[str, Any] | None = None
+    recipe_version: int | None = None
+    """A recipe measurement: its part and recipe version, decided again on the re-fitted result."""
 
 
 @dataclass(frozen=True)
@@ -163,7 +208,14 @@ def reprocess_one(task: Task) -> Outcome:
         out = replay(io.BytesIO(data), kinematics=task.kinematics)
         if out["truncated"]:
             return failed(f"the raw log {task.url} is cut short: not re-fitted", sha)
-        return Outcome(task.measurement_id, "done", sha, out["result"], "", time.process_time() - t0)
+        result = out["result"]
+        if task.recipe is not None and task.part is not None and task.recipe_version is not None:
+            from service.parts import part_result
+            from service.recipes import Recipe
+
+            recipe = Recipe.model_validate(task.recipe)
+            result = {**result, **part_result(result, task.part, recipe, task.recipe_version)}
+        return Outcome(task.measurement_id, "done", sha, result, "", time.process_time() - t0)
     except FileNotFoundError as exc:
         return failed(f"raw log not found: {exc}")
     except Exception as exc:  # one bad log is one failed task, never the end of the run
@@ -305,8 +357,8 @@ def diameter_and_u(result: dict[str, Any] | None) -> tuple[float | None, float |
 
 
 def decision_of(result: dict[str, Any] | None) -> str | None:
-    """A result's conformity decision: ``decision`` (a string, or an object with ``decision``) or
-    ``conformity.decision``; None when the result has none."""
+    """A result's conformity decision: ``decision`` (a string, or an object with ``outcome``, as
+    :mod:`service.parts` writes it, or ``decision``) or ``conformity.decision``; None when it has none."""
     if not result:
         return None
     for holder in (result, result.get("conformity")):
@@ -314,7 +366,7 @@ def decision_of(result: dict[str, Any] | None) -> str | None:
             continue
         d = holder.get("decision")
         if isinstance(d, dict):
-            d = d.get("decision")
+            d = d.get("outcome", d.get("decision"))
         if isinstance(d, str):
             return d
     return None
@@ -363,6 +415,9 @@ def reprocess(
             calibration_id=calibration_id,
             kinematics=kinematics,
             done_hashes=frozenset(done.get(m.measurement_id, ())),
+            part=m.part,
+            recipe=m.recipe,
+            recipe_version=m.recipe_version,
         )
         for m in items
     ]

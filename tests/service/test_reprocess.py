@@ -259,3 +259,53 @@ def test_decisions_and_since() -> None:
         rp.parse_since("yesterday")
     assert rp.log_url("s3://bucket/raw/", "/var/lrms/raw/abc.mcap") == "s3://bucket/raw/abc.mcap"
     assert rp.log_url(None, "/var/lrms/raw/abc.mcap") == "/var/lrms/raw/abc.mcap"
+
+
+def test_a_recipe_measurement_is_decided_again_with_its_recipe_version(archive: dict[str, Any], tmp_path: Path) -> None:
+    """An archived part of a recipe: the re-fitted result gets its part, thermal and decision keys
+    again (the recipe version it was measured with, read from the recipe store), and a decision
+    that differs from the original's is reported."""
+    from service.recipes import Recipe
+    from service.recipestore import RecipeStore
+
+    data = _copy(archive, tmp_path)
+    cfg = archive["config"]
+    cfg = cfg.model_copy(update={"storage": cfg.storage.model_copy(update={"dir": data})})
+    mid = sorted(archive["good"])[0]
+    original = archive["good"][mid].result
+    engine = rp.result_engine(cfg)
+    try:
+        # a recipe whose tolerance excludes the part (nominal 10 mm above it: does not conform)
+        d = float(original["diameter_m"])
+        body = {
+            "name": "SHAFT-T",
+            "target": "cylinder",
+            "tolerances": {"diameter": {"nominal_m": d + 0.01, "lower_m": -0.001, "upper_m": 0.001}},
+            "material": "carbon_steel",
+            "sweep": {"speed_deg_s": 20.0},
+        }
+        version = RecipeStore(engine).create(Recipe.model_validate(body)).version
+        part = {"recipe": "SHAFT-T", "recipe_version": version, "part_id": "4711", "operator": "ana"}
+        claimed = {"outcome": "conforms", "rule": "iso14253-1"}  # what the original result claims
+        with sqlite3.connect(data / "lrms.sqlite") as db:
+            db.execute(
+                "UPDATE measurements SET result = ? WHERE id = ?",
+                (json.dumps({**original, "part": part, "thermal": None, "decision": claimed}), mid),
+            )
+        measurements = [m for m in rp.archived_measurements(engine) if m.measurement_id == mid]
+        assert measurements[0].recipe is not None and measurements[0].part == {
+            "part_id": "4711",
+            "operator": "ana",
+            "part_temperature_c": None,
+            "temperature_uncertainty_c": None,
+        }
+        summary = rp.reprocess(VersionStore(engine), measurements, rp.serial_executor)
+        assert summary.done == 1 and not summary.failed, summary.failed
+        (v,) = VersionStore(engine).versions()
+        assert v.result["part"] == part and v.result["thermal"] is None
+        assert v.result["decision"]["outcome"] == "does_not_conform"
+        assert summary.decision_changes == [
+            {"measurement_id": mid, "version": 1, "original": "conforms", "new": "does_not_conform"}
+        ]
+    finally:
+        engine.dispose()
