@@ -109,11 +109,30 @@ class Cylinder:
         return Cylinder(a, self.direction, self.radius)
 
 
+#: Beams per block of :func:`_ray_cylinder_rows` (its temporaries stay in the CPU's cache).
+RAY_BLOCK = 16384
+
+
 def _ray_cylinder_rows(
     o: FloatArray, u: FloatArray, a: FloatArray, w: FloatArray, r: float
 ) -> tuple[FloatArray, FloatArray]:
     """:func:`_ray_cylinder` for ``(N, 3)`` beams and one cylinder, by coordinate (no ``(N, 3)``
-    temporaries; the pipeline calls it on every beam of the cloud several times)."""
+    temporaries; the pipeline calls it on every beam of the cloud several times), in blocks of
+    :data:`RAY_BLOCK` beams."""
+    n = o.shape[0]
+    if n <= RAY_BLOCK:
+        return _ray_cylinder_block(o, u, a, w, r)
+    t, gap = np.empty(n), np.empty(n)
+    for s in range(0, n, RAY_BLOCK):
+        t[s : s + RAY_BLOCK], gap[s : s + RAY_BLOCK] = _ray_cylinder_block(
+            o[s : s + RAY_BLOCK], u[s : s + RAY_BLOCK], a, w, r
+        )
+    return t, gap
+
+
+def _ray_cylinder_block(
+    o: FloatArray, u: FloatArray, a: FloatArray, w: FloatArray, r: float
+) -> tuple[FloatArray, FloatArray]:
     v0, v1, v2 = o[:, 0] - a[0], o[:, 1] - a[1], o[:, 2] - a[2]
     u0, u1, u2 = u[:, 0], u[:, 1], u[:, 2]
     vw = v0 * w[0] + v1 * w[1] + v2 * w[2]
