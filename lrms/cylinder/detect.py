@@ -272,7 +272,7 @@ def background_planes(
             break
         try:
             model, mask = ransac(
-                data[rows], _Plane, 3, opt.threshold, max_trials=500, min_trials=100, rng=g, score_size=5000, batch=50
+                data[rows], _Plane, 3, opt.threshold, max_trials=500, min_trials=100, rng=g, score_size=2000, batch=50
             )
         except FitError:
             break
