@@ -59,12 +59,18 @@ def ransac(
     is_model_valid: Callable[[M], bool] | None = None,
     refine: bool = True,
     rng: np.random.Generator | None = None,
+    batch: int = 0,
 ) -> tuple[M, BoolArray]:
     """Robustly fit ``model_class`` to the rows of ``data``.
 
     Returns the best model and the boolean inlier mask over all rows of ``data``. Raises
     :class:`~lrms.errors.FitError` when there are fewer than ``min_samples`` rows or no
     hypothesis reaches ``min_inliers`` (default ``min_samples``) inliers.
+
+    ``batch`` > 0 (for a model class with the :class:`BatchModel` class methods, and no
+    ``is_model_valid``): hypotheses are drawn, estimated and scored ``batch`` at a time as arrays
+    (samples with a repeated row count as degenerate trials); the trial count adapts after each
+    batch, so up to ``batch - 1`` more trials than one at a time may run.
     """
     x = np.asarray(data, dtype=np.float64)
     n = x.shape[0]
@@ -86,7 +92,32 @@ def ransac(
     best_ssr = math.inf
     limit = float(max_trials)
     trial = 0
-    while (trial < limit or trial < min_trials) and trial < max_trials:
+    batched = batch > 0 and is_model_valid is None and hasattr(model_class, "batch_hypotheses")
+    while batched and (trial < limit or trial < min_trials) and trial < max_trials:
+        b = min(batch, max_trials - trial)
+        trial += b
+        picks = g.integers(0, n, (b, min_samples))
+        srt = np.sort(picks, axis=1)
+        distinct = np.all(srt[:, 1:] != srt[:, :-1], axis=1)
+        params, valid = model_class.batch_hypotheses(x[picks])  # type: ignore[attr-defined]
+        valid &= distinct
+        if not np.any(valid):
+            continue
+        params = params[valid]
+        if hasattr(model_class, "batch_inlier_residuals"):
+            res = model_class.batch_inlier_residuals(params, scored, residual_threshold)
+        else:
+            res = model_class.batch_residuals(params, scored)  # type: ignore[attr-defined]
+        inl = res < residual_threshold
+        counts = np.count_nonzero(inl, axis=1)
+        ssrs = np.sum(np.where(inl, res * res, 0.0), axis=1)
+        top = int(np.lexsort((ssrs, -counts))[0])
+        count, ssr = int(counts[top]), float(ssrs[top])
+        if count > best_count or (count == best_count and ssr < best_ssr):
+            best_model = model_class.from_params(params[top])  # type: ignore[attr-defined]
+            best_count, best_ssr = count, ssr
+            limit = min(float(max_trials), trials_needed(count / n_scored, min_samples, stop_probability))
+    while not batched and (trial < limit or trial < min_trials) and trial < max_trials:
         trial += 1
         sample = x[g.choice(n, size=min_samples, replace=False)]
         model = model_class()
@@ -114,6 +145,21 @@ def ransac(
             if np.count_nonzero(mask2) >= np.count_nonzero(mask):
                 return final, mask2
     return best_model, mask
+
+
+class BatchModel(Protocol):
+    """Optional class methods of a model class for :func:`ransac`'s ``batch`` mode: hypotheses
+    from ``(B, min_samples, d)`` samples as a ``(B, k)`` parameter array and a validity mask,
+    their ``(B, m)`` residuals on ``(m, d)`` rows, and the model of one parameter row."""
+
+    @classmethod
+    def batch_hypotheses(cls, samples: FloatArray) -> tuple[FloatArray, BoolArray]: ...
+
+    @classmethod
+    def batch_residuals(cls, params: FloatArray, data: FloatArray) -> FloatArray: ...
+
+    @classmethod
+    def from_params(cls, row: FloatArray) -> RansacModel: ...
 
 
 class PlaneModel:
@@ -159,3 +205,46 @@ class PlaneModel:
             cosang = np.clip(np.abs(d[:, 3:6] @ self.normal), 0.0, 1.0)
             res = res + self.normal_weight * np.arccos(cosang)
         return np.asarray(res, dtype=np.float64)
+
+    @classmethod
+    def batch_hypotheses(cls, samples: FloatArray) -> tuple[FloatArray, BoolArray]:
+        """Planes through ``(B, 3, d)`` point triples: rows ``(nx, ny, nz, offset)``."""
+        p = samples[:, :, :3]
+        d1, d2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+        n = np.cross(d1, d2)
+        norm = np.linalg.norm(n, axis=1)
+        scale = np.linalg.norm(d1, axis=1) * np.linalg.norm(d2, axis=1)
+        ok = (scale > 0) & (norm >= 1e-6 * scale)
+        n = n / np.where(ok, norm, 1.0)[:, None]
+        offset = np.einsum("bi,bi->b", n, p.mean(axis=1))
+        return np.column_stack([n, offset]), ok
+
+    @classmethod
+    def batch_residuals(cls, params: FloatArray, data: FloatArray) -> FloatArray:
+        d = np.asarray(data, dtype=np.float64)
+        res = np.abs(params[:, :3] @ d[:, :3].T - params[:, 3:4])
+        if cls.normal_weight > 0 and d.shape[1] >= 6:
+            cosang = np.minimum(np.abs(params[:, :3] @ d[:, 3:6].T), 1.0)
+            res += cls.normal_weight * np.arccos(cosang)
+        return np.asarray(res, dtype=np.float64)
+
+    @classmethod
+    def batch_inlier_residuals(cls, params: FloatArray, data: FloatArray, threshold: float) -> FloatArray:
+        """:meth:`batch_residuals` where they can be below ``threshold``, ``inf`` elsewhere (the
+        angle term, an arccos, is only taken for rows whose distance alone is below it)."""
+        d = np.asarray(data, dtype=np.float64)
+        res = np.abs(params[:, :3] @ d[:, :3].T - params[:, 3:4])
+        if cls.normal_weight > 0 and d.shape[1] >= 6:
+            near = res < threshold
+            b, m = np.nonzero(near)
+            cosang = np.minimum(np.abs(np.einsum("ki,ki->k", params[b, :3], d[m, 3:6])), 1.0)
+            res[near] += cls.normal_weight * np.arccos(cosang)
+            res[~near] = np.inf
+        return np.asarray(res, dtype=np.float64)
+
+    @classmethod
+    def from_params(cls, row: FloatArray) -> PlaneModel:
+        model = cls()
+        model.normal = np.asarray(row[:3], dtype=np.float64).copy()
+        model.offset = float(row[3])
+        return model

@@ -87,16 +87,42 @@ def min_axis_distance(cyl: Cylinder, points: ArrayLike, covs: ArrayLike, k: floa
     return _min_distance_2d(c, s[:, 0, 0], s[:, 0, 1], s[:, 1, 1], kk)
 
 
+#: Ellipses per block of :func:`_min_distance_2d` (its temporaries stay in the CPU's cache).
+_BLOCK = 8192
+
+
 def _min_distance_2d(c: FloatArray, a: FloatArray, b: FloatArray, d: FloatArray, kk: float) -> FloatArray:
     """Distance from the origin to the filled ellipses ``(y - c)^T S^-1 (y - c) <= k^2``,
-    ``S = [[a, b], [b, d]]``, for ``N`` ellipses at once (see the module notes)."""
-    # eigen-decomposition of the symmetric 2x2 matrices, closed form
+    ``S = [[a, b], [b, d]]``, for ``N`` ellipses at once (see the module notes), in blocks of
+    :data:`_BLOCK`."""
+    n = c.shape[0]
+    if n <= _BLOCK:
+        return _min_distance_block(c, a, b, d, kk)
+    out = np.empty(n)
+    for s in range(0, n, _BLOCK):
+        e = s + _BLOCK
+        out[s:e] = _min_distance_block(c[s:e], a[s:e], b[s:e], d[s:e], kk)
+    return out
+
+
+def _min_distance_block(c: FloatArray, a: FloatArray, b: FloatArray, d: FloatArray, kk: float) -> FloatArray:
+    # eigen-decomposition of the symmetric 2x2 matrices, closed form, without trigonometry: the
+    # eigenvector of the larger eigenvalue s1 is (s1 - d, b) or (b, s1 - a), whichever is longer
     mean = 0.5 * (a + d)
-    rad = np.hypot(0.5 * (a - d), b)
+    half = 0.5 * (a - d)
+    rad = np.sqrt(half * half + b * b)  # (np.hypot is many times slower)
     s1 = np.maximum(mean + rad, 1e-300)
     s2 = np.maximum(mean - rad, 1e-30 * s1)
-    ang = 0.5 * np.arctan2(2 * b, a - d)
-    ca, sa = np.cos(ang), np.sin(ang)
+    first = a >= d
+    vx = rad + half  # s1 - d
+    vy = b.copy()
+    vx[~first] = b[~first]
+    vy[~first] = rad[~first] - half[~first]  # s1 - a
+    vn = np.sqrt(vx * vx + vy * vy)
+    round_ = vn <= 0  # isotropic: any axes
+    vn[round_] = 1.0
+    vx[round_] = 1.0
+    ca, sa = vx / vn, vy / vn
     c1 = ca * c[:, 0] + sa * c[:, 1]  # component along the s1 eigenvector
     c2 = -sa * c[:, 0] + ca * c[:, 1]
     q1, q2 = s1 * c1 * c1, s2 * c2 * c2
@@ -106,21 +132,29 @@ def _min_distance_2d(c: FloatArray, a: FloatArray, b: FloatArray, d: FloatArray,
     mu = np.maximum(np.maximum(np.sqrt(s1) * np.abs(c1) / kk - s1, np.sqrt(s2) * np.abs(c2) / kk - s2), 0.0)
     mu[inside] = 0.0
     todo = np.flatnonzero(~inside)
+    # Newton on phi(mu) = |S^1/2 (S + mu)^-1 c|^-1 = 1 / k, on compacted arrays of the
+    # unfinished ellipses (most finish in 2-3 steps)
+    m_, s1_, s2_, q1_, q2_ = mu[todo], s1[todo], s2[todo], q1[todo], q2[todo]
     for _ in range(60):
         if todo.size == 0:
             break
-        m_, s1_, s2_, q1_, q2_ = mu[todo], s1[todo], s2[todo], q1[todo], q2[todo]
         i1, i2 = 1.0 / (s1_ + m_), 1.0 / (s2_ + m_)
         t1, t2 = q1_ * i1 * i1, q2_ * i2 * i2
         m = t1 + t2
         phi = 1.0 / np.sqrt(m)
         dphi = (t1 * i1 + t2 * i2) * phi / m
         step = np.maximum((target - phi) / np.maximum(dphi, 1e-300), 0.0)
-        mu[todo] = m_ + step
-        todo = todo[step > 1e-12 * np.maximum(m_ + step, 1e-300)]
+        m_ = m_ + step
+        going = step > 1e-12 * np.maximum(m_, 1e-300)
+        if not np.all(going):
+            mu[todo] = m_
+            todo, m_, s1_, s2_, q1_, q2_ = todo[going], m_[going], s1_[going], s2_[going], q1_[going], q2_[going]
+    mu[todo] = m_
     y1 = mu * c1 / (s1 + mu)
     y2 = mu * c2 / (s2 + mu)
-    return np.asarray(np.where(inside, 0.0, np.hypot(y1, y2)), dtype=np.float64)
+    dist = np.sqrt(y1 * y1 + y2 * y2)
+    dist[inside] = 0.0
+    return np.asarray(dist, dtype=np.float64)
 
 
 def centripetal_radii(cyl: Cylinder, points: ArrayLike, covs: ArrayLike, k: float) -> FloatArray:
@@ -178,20 +212,47 @@ def centripetal_radius_eq12(cyl: Cylinder, point: ArrayLike, cov: ArrayLike, k: 
 
 
 def _rig_centripetal_radii(cyl: Cylinder, pts: FloatArray, nm: NoiseModel, p: float, k: float) -> FloatArray:
+    """:func:`_rig_centripetal_radii_block` in blocks of :data:`_BLOCK` points."""
+    n = pts.shape[0]
+    if n <= _BLOCK:
+        return _rig_centripetal_radii_block(cyl, pts, nm, p, k)
+    out = np.empty(n)
+    for s in range(0, n, _BLOCK):
+        out[s : s + _BLOCK] = _rig_centripetal_radii_block(cyl, pts[s : s + _BLOCK], nm, p, k)
+    return out
+
+
+def _rig_centripetal_radii_block(cyl: Cylinder, pts: FloatArray, nm: NoiseModel, p: float, k: float) -> FloatArray:
     """:func:`centripetal_radii` with Eq. 7 covariances, projected without forming them:
-    ``S = (P J) diag(var) (P J)^T`` for the 2 x 3 projection ``P`` onto the cross-section."""
-    l, alpha, beta = kinematics.inverse(pts, p)
-    jac = kinematics.jacobian(l, alpha, beta, p)
+    ``S = (P J) diag(var) (P J)^T`` for the 2 x 3 projection ``P`` onto the cross-section.
+
+    The columns of Eq. 6's ``J`` follow from the point itself (the branch of
+    :func:`lrms.kinematics.inverse`, ``l sin(alpha) + p = hypot(x, z) >= 0``): with
+    ``rho = hypot(x, z)`` and ``s = rho - p = l sin(alpha)``, ``d/dl = (s x / rho, y, s z / rho) / l``,
+    ``d/dalpha = (y x / rho, -s, y z / rho)`` and ``d/dbeta = (-z, 0, x)``; no trigonometry and
+    no ``(N, 3, 3)`` array."""
+    x, y, z = pts[:, 0], pts[:, 1], pts[:, 2]
+    rho = np.maximum(np.sqrt(x * x + z * z), 1e-300)
+    s = rho - p
+    l = np.maximum(np.sqrt(s * s + y * y), 1e-300)
+    cx, cz = x / rho, z / rho
     e1, e2 = perpendicular_frame(cyl.direction)
-    pj = np.stack([e1, e2]) @ jac  # (N, 2, 3)
-    var = np.array([nm.sigma_l**2, nm.sigma_alpha**2, nm.sigma_beta**2])
-    p0, p1 = pj[:, 0, :], pj[:, 1, :]
-    s00 = (p0 * p0) @ var
-    s01 = (p0 * p1) @ var
-    s11 = (p1 * p1) @ var
-    v = pts - cyl.point
-    c = np.column_stack([v @ e1, v @ e2])
-    return np.asarray(cyl.radius - _min_distance_2d(c, s00, s01, s11, k), dtype=np.float64)
+    var_l, var_a, var_b = nm.sigma_l**2, nm.sigma_alpha**2, nm.sigma_beta**2
+    sl = s / l
+    proj = []
+    for e in (e1, e2):
+        dl = (sl * cx) * e[0] + (y / l) * e[1] + (sl * cz) * e[2]
+        da = (y * cx) * e[0] - s * e[1] + (y * cz) * e[2]
+        db = x * e[2] - z * e[0]
+        proj.append((dl, da, db))
+    (l0, a0, b0), (l1, a1, b1) = proj
+    s00 = var_l * l0 * l0 + var_a * a0 * a0 + var_b * b0 * b0
+    s01 = var_l * l0 * l1 + var_a * a0 * a1 + var_b * b0 * b1
+    s11 = var_l * l1 * l1 + var_a * a1 * a1 + var_b * b1 * b1
+    a = cyl.point
+    c0 = (x - a[0]) * e1[0] + (y - a[1]) * e1[1] + (z - a[2]) * e1[2]
+    c1 = (x - a[0]) * e2[0] + (y - a[1]) * e2[1] + (z - a[2]) * e2[2]
+    return np.asarray(cyl.radius - _min_distance_2d(np.column_stack([c0, c1]), s00, s01, s11, k), dtype=np.float64)
 
 
 def ideal_points(cyl: Cylinder, rays: Rays) -> FloatArray:

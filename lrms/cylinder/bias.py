@@ -8,9 +8,10 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
+from lrms.cylinder.lm import LosProblem
 from lrms.cylinder.model import Cylinder, Rays, _dot
 from lrms.cylinder.options import DetectOptions
-from lrms.cylinder.refine import CylinderFit, _covariance, _Frame, los_jacobian, los_residuals, refine_cylinder
+from lrms.cylinder.refine import CylinderFit, _covariance, _Frame, refine_cylinder
 from lrms.errors import FitError
 
 FloatArray = NDArray[np.float64]
@@ -82,23 +83,27 @@ def grazing_weighted_fit(
     if not lo <= cyl.radius <= hi:
         return fit
     sig = grazing_sigmas(cyl, sub, sigma_lat)
-    frame = _Frame.at(cyl)
-    jac = los_jacobian(np.zeros(5), frame, sub.origins, sub.dirs, sig, sub.sigma_perp)
+    jac = LosProblem(Rays(sub.origins, sub.dirs, sub.ranges, sig, sub.sigma_perp)).jacobian(cyl)
     var = np.concatenate([np.square(sub.sigma_l / sig), np.ones(idx.size)])
     a_inv = _covariance(jac)
     cov = a_inv @ (jac.T @ (var[:, None] * jac)) @ a_inv
-    res = los_residuals(np.zeros(5), frame, sub.origins, sub.dirs, sub.ranges, sub.sigma_l, sub.sigma_perp)
-    t, _ = cyl.ray_range(sub.origins, sub.dirs)
+    plain = LosProblem(sub).linearise(cyl, jacobian=False)
+    m = idx.size
     return replace(
         fit,
         cylinder=cyl,
-        rmse=float(np.sqrt(np.mean(np.square(sub.ranges - t)))),
+        rmse=float(np.sqrt(np.mean(np.square(plain.residuals[:m] / plain_isl(sub))))),
         covariance=np.asarray(cov, dtype=np.float64),
-        frame=(frame.e1, frame.e2),
-        chi2_dof=float(np.sum(res * res) / max(idx.size - 5, 1)),
+        frame=(plain.e1, plain.e2),
+        chi2_dof=float(plain.cost / max(m - 5, 1)),
         sigma_scale=1.0,
         extra={**fit.extra, "grazing_sigma_m": float(sigma_lat)},
     )
+
+
+def plain_isl(rays: Rays) -> FloatArray:
+    """``1 / sigma_l`` of each beam (undoes the whitening of the range residuals)."""
+    return np.asarray(1.0 / np.broadcast_to(rays.sigma_l, rays.ranges.shape), dtype=np.float64)
 
 
 def second_order_bias(fit: CylinderFit, rays: Rays) -> FloatArray:
@@ -128,14 +133,16 @@ def second_order_bias(fit: CylinderFit, rays: Rays) -> FloatArray:
     lam, vec = np.linalg.eigh(0.5 * (fit.covariance + fit.covariance.T))
     steps = (np.sqrt(3.0 * np.maximum(lam, 0.0)) * vec).T  # rows: the Gauss-Hermite nodes' offsets
 
+    problem = LosProblem(Rays(rays.origins, rays.dirs, rays.ranges, np.asarray(sig), rays.sigma_perp))
+
     def res(th: FloatArray) -> FloatArray:
-        return los_residuals(th, frame, rays.origins, rays.dirs, rays.ranges, sig, rays.sigma_perp)
+        return problem.linearise(frame.cylinder(th), jacobian=False).residuals
 
     centre = res(np.zeros(5))
     second = np.zeros_like(centre)
     for step in steps:  # 5 directions, each a vectorized pass over the beams
         second += (res(step) + res(-step) - 2.0 * centre) / 3.0
-    jac = los_jacobian(np.zeros(5), frame, rays.origins, rays.dirs, sig, rays.sigma_perp)
+    jac = problem.jacobian(fit.cylinder, frame=(frame.e1, frame.e2))
     # whitened residuals r_i = (l_i - t_i) / s_i: J_r = -J_t / s_i and second = -"tr(H_i C)" / s_i
     return np.asarray(-0.5 * (_covariance(jac) @ (jac.T @ second)), dtype=np.float64)
 

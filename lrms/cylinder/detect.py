@@ -3,8 +3,12 @@ a free plane RANSAC."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from functools import cached_property
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from lrms.cylinder.model import Cylinder, estimate_normals, perpendicular_frame
@@ -77,6 +81,74 @@ class CylinderModel:
         self.cylinder = fit.cylinder
         return True
 
+    @classmethod
+    def batch_hypotheses(cls, samples: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """:meth:`estimate` on ``(B, 2, 6)`` samples at once: rows ``(point, direction, radius)``."""
+        p1, n1, p2, n2 = samples[:, 0, :3], samples[:, 0, 3:6], samples[:, 1, :3], samples[:, 1, 3:6]
+        w = np.cross(n1, n2)
+        sw = np.linalg.norm(w, axis=1)
+        ok = sw >= 0.05  # normals nearly parallel: axis undefined
+        w = w / np.where(ok, sw, 1.0)[:, None]
+        r12 = p1 - p2
+        b = np.einsum("bi,bi->b", n1, n2)
+        denom = np.where(ok, 1.0 - b * b, 1.0)
+        e, f = np.einsum("bi,bi->b", n1, r12), np.einsum("bi,bi->b", n2, r12)
+        s = (b * f - e) / denom
+        t = (f - b * e) / denom
+        c = 0.5 * ((p1 + s[:, None] * n1) + (p2 + t[:, None] * n2))
+        v = p1 - c
+        rad = v - np.einsum("bi,bi->b", v, w)[:, None] * w
+        r = np.linalg.norm(rad, axis=1)
+        lo, hi = cls.radius_range
+        ok &= (lo <= r) & (r <= hi) & np.all(np.isfinite(c), axis=1)
+        return np.column_stack([c, w, r]), ok
+
+    @classmethod
+    def batch_residuals(cls, params: FloatArray, data: FloatArray) -> FloatArray:
+        """:meth:`residuals` of ``B`` cylinders on ``(m, 6)`` rows as ``(B, m)`` products."""
+        x = data[:, :3]
+        c, w, r = params[:, 0:3], params[:, 3:6], params[:, 6]
+        xw = w @ x.T - np.einsum("bi,bi->b", c, w)[:, None]  # (x - c).w
+        xx = np.einsum("mi,mi->m", x, x)
+        cx = c @ x.T
+        d2 = xx[None, :] - 2.0 * cx + np.einsum("bi,bi->b", c, c)[:, None] - xw * xw
+        dist = np.sqrt(np.maximum(d2, 0.0))
+        res = np.abs(dist - r[:, None])
+        if data.shape[1] >= 6:
+            nrm = data[:, 3:6]
+            # rad . n = (x - c).n - ((x - c).w) (w.n)
+            rn = np.einsum("mi,mi->m", x, nrm)[None, :] - c @ nrm.T - xw * (w @ nrm.T)
+            cosang = np.minimum(np.abs(rn) / np.maximum(dist, 1e-12), 1.0)
+            res += cls.normal_weight * np.arccos(cosang)
+        return np.asarray(res, dtype=np.float64)
+
+    @classmethod
+    def batch_inlier_residuals(cls, params: FloatArray, data: FloatArray, threshold: float) -> FloatArray:
+        """:meth:`batch_residuals` where they can be below ``threshold``, ``inf`` elsewhere (the
+        angle term only for rows whose distance alone is below it)."""
+        x = data[:, :3]
+        c, w, r = params[:, 0:3], params[:, 3:6], params[:, 6]
+        xw = w @ x.T - np.einsum("bi,bi->b", c, w)[:, None]
+        xx = np.einsum("mi,mi->m", x, x)
+        d2 = xx[None, :] - 2.0 * (c @ x.T) + np.einsum("bi,bi->b", c, c)[:, None] - xw * xw
+        dist = np.sqrt(np.maximum(d2, 0.0))
+        res = np.abs(dist - r[:, None])
+        if data.shape[1] >= 6:
+            near = res < threshold
+            b, m = np.nonzero(near)
+            nrm = data[m, 3:6]
+            rn = np.einsum("ki,ki->k", x[m] - c[b], nrm) - xw[b, m] * np.einsum("ki,ki->k", w[b], nrm)
+            cosang = np.minimum(np.abs(rn) / np.maximum(dist[b, m], 1e-12), 1.0)
+            res[near] += cls.normal_weight * np.arccos(cosang)
+            res[~near] = np.inf
+        return np.asarray(res, dtype=np.float64)
+
+    @classmethod
+    def from_params(cls, row: FloatArray) -> CylinderModel:
+        model = cls()
+        model.cylinder = Cylinder(row[0:3], row[3:6], float(row[6]))
+        return model
+
     def residuals(self, data: FloatArray) -> FloatArray:
         if self.cylinder is None:
             raise FitError("model not estimated")
@@ -117,6 +189,102 @@ def detect_plane(
     return model.normal, model.offset, mask
 
 
+@dataclass(frozen=True)
+class Background:
+    """The background planes found on a working sample of the cloud (:func:`background_planes`):
+    ``planes`` ``(normal, offset)``, the sample's row indices ``sample`` into the cloud, their
+    points, whether each was left by the planes (``left``) and their PCA normals."""
+
+    planes: list[tuple[FloatArray, float]]
+    sample: IntArray
+    sample_points: FloatArray
+    left: NDArray[np.bool_]
+    normals: FloatArray
+
+    @cached_property
+    def tree(self) -> cKDTree:
+        return cKDTree(self.sample_points)
+
+    def off(self, pts: FloatArray, rows: IntArray, threshold: float) -> IntArray:
+        """Those of ``rows`` (indices into ``pts``) not set aside: a row is set aside when it lies
+        within ``threshold`` of a plane and its nearest sampled point was taken by a plane."""
+        if not self.planes:
+            return rows
+        p = pts[rows]
+        near = np.zeros(rows.size, dtype=bool)
+        for normal, offset in self.planes:
+            near |= np.abs(p @ normal - offset) < threshold
+        out = ~near
+        if np.any(near):
+            _, nn = self.tree.query(p[near], k=1)
+            out[near] = self.left[np.asarray(nn, dtype=np.intp)]
+        return rows[out]
+
+
+#: Cell (m) of the occupancy grid in which a background plane's points must form one piece.
+WALL_CELL = 0.1
+
+
+def _plane_extent(on: FloatArray, normal: FloatArray) -> float:
+    """The smaller span (2nd-98th percentiles) of the largest connected piece of a plane's points
+    (8-connected cells of :data:`WALL_CELL` in the plane). A wall, floor or table top is one
+    extended piece; the front strip of a cylinder together with a few unrelated objects that
+    happen to lie in the same plane is not (on the whole room cloud one such "plane" took a
+    third of the part's points in 2 of 6 runs before this test)."""
+    e1, e2 = perpendicular_frame(normal)
+    uv = on @ np.stack([e1, e2], axis=1)
+    cells = np.floor((uv - uv.min(axis=0)) / WALL_CELL).astype(np.intp)
+    shape = tuple(int(v) + 1 for v in cells.max(axis=0))
+    if shape[0] * shape[1] > 4_000_000:  # a plane kilometres wide: no piece test
+        piece = uv
+    else:
+        grid = np.zeros(shape, dtype=bool)
+        grid[cells[:, 0], cells[:, 1]] = True
+        labels, count = ndimage.label(grid, structure=np.ones((3, 3), dtype=bool))
+        lab = labels[cells[:, 0], cells[:, 1]]
+        piece = uv[lab == int(np.argmax(np.bincount(lab)[1:])) + 1] if count > 1 else uv
+    span = np.ptp(np.percentile(piece, [2.0, 98.0], axis=0), axis=0)
+    return float(np.min(span))
+
+
+def background_planes(
+    points: ArrayLike, options: DetectOptions | None = None, rng: np.random.Generator | None = None
+) -> Background:
+    """The large planes of a cloud (walls, floor, ceiling, table tops), found on a random sample
+    of at most ``options.wall_sample`` points (see :func:`dominant_planes`)."""
+    opt = options if options is not None else DetectOptions()
+    g = rng if rng is not None else np.random.default_rng(0)
+    pts = np.asarray(points, dtype=np.float64)
+    n = pts.shape[0]
+    if opt.max_planes <= 0 or n < 3 * max(opt.min_inliers, 10):
+        return Background([], np.arange(0), np.zeros((0, 3)), np.zeros(0, dtype=bool), np.zeros((0, 3)))
+    idx = np.sort(g.choice(n, size=opt.wall_sample, replace=False)) if n > opt.wall_sample else np.arange(n)
+    data = np.hstack([pts[idx], estimate_normals(pts[idx], opt.normal_k)])
+
+    class _Plane(PlaneModel):
+        normal_weight = opt.threshold / float(np.deg2rad(30.0))
+
+    left = np.ones(idx.size, dtype=bool)
+    planes: list[tuple[FloatArray, float]] = []
+    for _ in range(opt.max_planes):
+        rows = np.flatnonzero(left)
+        if rows.size < 3 * opt.min_inliers:
+            break
+        try:
+            model, mask = ransac(
+                data[rows], _Plane, 3, opt.threshold, max_trials=500, min_trials=100, rng=g, score_size=2000, batch=50
+            )
+        except FitError:
+            break
+        if np.count_nonzero(mask) < opt.wall_min_share * idx.size:
+            break
+        if _plane_extent(pts[idx[rows[mask]]], model.normal) < opt.wall_min_extent:
+            break
+        planes.append((np.asarray(model.normal, dtype=np.float64), float(model.offset)))
+        left[rows[mask]] = False
+    return Background(planes, idx, pts[idx], left, data[:, 3:6])
+
+
 def dominant_planes(
     points: ArrayLike, options: DetectOptions | None = None, rng: np.random.Generator | None = None
 ) -> tuple[IntArray, list[tuple[FloatArray, float]]]:
@@ -133,49 +301,35 @@ def dominant_planes(
     plane at the scanner's noise, and its points whose normals agree with one plane form a strip
     ``D sin(30 deg)`` wide at most, far narrower than ``wall_min_extent``. A point of the whole
     cloud is set aside when it lies within ``threshold`` of a taken plane and its nearest sampled
-    point was taken by a plane.
+    point was taken by a plane (:meth:`Background.off`; :func:`fit_cylinder` classifies only the
+    points its RANSAC draws).
     """
     opt = options if options is not None else DetectOptions()
-    g = rng if rng is not None else np.random.default_rng(0)
     pts = np.asarray(points, dtype=np.float64)
+    bg = background_planes(pts, opt, rng)
+    return bg.off(pts, np.arange(pts.shape[0]), opt.threshold), bg.planes
+
+
+def candidate_pool(
+    pts: FloatArray, bg: Background, opt: DetectOptions, rng: np.random.Generator, size: int
+) -> IntArray:
+    """At least ``size`` random indices of points off the background planes (all of them when
+    there are fewer): a random draw, classified by :meth:`Background.off`, grown until enough."""
     n = pts.shape[0]
-    if opt.max_planes <= 0 or n < 3 * max(opt.min_inliers, 10):
-        return np.arange(n), []
-    idx = np.sort(g.choice(n, size=opt.wall_sample, replace=False)) if n > opt.wall_sample else np.arange(n)
-    data = np.hstack([pts[idx], estimate_normals(pts[idx], opt.normal_k)])
-
-    class _Plane(PlaneModel):
-        normal_weight = opt.threshold / float(np.deg2rad(30.0))
-
-    left = np.ones(idx.size, dtype=bool)
-    planes: list[tuple[FloatArray, float]] = []
-    for _ in range(opt.max_planes):
-        rows = np.flatnonzero(left)
-        if rows.size < 3 * opt.min_inliers:
-            break
-        try:
-            model, mask = ransac(
-                data[rows], _Plane, 3, opt.threshold, max_trials=500, min_trials=100, rng=g, score_size=5000
-            )
-        except FitError:
-            break
-        if np.count_nonzero(mask) < opt.wall_min_share * idx.size:
-            break
-        on = pts[idx[rows[mask]]]
-        e1, e2 = perpendicular_frame(model.normal)
-        span = np.ptp(np.percentile(on @ np.stack([e1, e2], axis=1), [2.0, 98.0], axis=0), axis=0)
-        if float(np.min(span)) < opt.wall_min_extent:
-            break
-        planes.append((np.asarray(model.normal, dtype=np.float64), float(model.offset)))
-        left[rows[mask]] = False
-    if not planes:
-        return np.arange(n), []
-    near = np.zeros(n, dtype=bool)
-    for normal, offset in planes:
-        near |= np.abs(pts @ normal - offset) < opt.threshold
-    _, nn = cKDTree(pts[idx]).query(pts, k=1)
-    off = ~near | left[np.asarray(nn, dtype=np.intp)]
-    return np.flatnonzero(off), planes
+    if not bg.planes:
+        return np.arange(n)
+    share = max(float(np.mean(bg.left)) if bg.left.size else 1.0, 0.05)
+    order = rng.permutation(n)
+    got: list[IntArray] = []
+    have, start = 0, 0
+    while have < size and start < n:
+        take = int(min(n - start, max(1.5 * (size - have) / share, 1000)))
+        rows = np.sort(order[start : start + take])
+        start += take
+        kept = bg.off(pts, rows, opt.threshold)
+        got.append(kept)
+        have += kept.size
+    return np.sort(np.concatenate(got)) if got else np.arange(0)
 
 
 def detect_cylinder(
@@ -183,11 +337,14 @@ def detect_cylinder(
     options: DetectOptions | None = None,
     rng: np.random.Generator | None = None,
     candidates: ArrayLike | None = None,
+    normals: ArrayLike | None = None,
 ) -> tuple[Cylinder, tuple[FloatArray, float] | None]:
     """Rough cylinder (RANSAC, 2 points + normals) and the table plane if one was found.
 
     ``candidates``: indices of the points the RANSAC draws from (e.g. those off the background
-    planes, :func:`dominant_planes`); the table plane is searched among all points."""
+    planes, :func:`dominant_planes`); the table plane is searched among all points. ``normals``:
+    the candidates' normals when already known (one row per candidate, e.g. the background
+    sample's, :class:`Background`); else PCA normals of the RANSAC's sample."""
     opt = options if options is not None else DetectOptions()
     g = rng if rng is not None else np.random.default_rng(0)
     pts = np.asarray(points, dtype=np.float64)
@@ -198,9 +355,15 @@ def detect_cylinder(
     if pool.shape[0] < opt.min_inliers:
         raise FitError(f"too few points off the background planes to detect a cylinder: {pool.shape[0]}")
     m = pool.shape[0]
-    sub = pool[g.choice(m, size=opt.sample_size, replace=False)] if m > opt.sample_size else pool
-    normals = estimate_normals(sub, opt.normal_k)
-    data = np.hstack([sub, normals])
+    pick = g.choice(m, size=opt.sample_size, replace=False) if m > opt.sample_size else np.arange(m)
+    sub = pool[pick]
+    if normals is not None:
+        nrm = np.asarray(normals, dtype=np.float64)
+        if nrm.shape != (m, 3):
+            raise FitError(f"normals must have one row per candidate, got {nrm.shape} for {m}")
+        data = np.hstack([sub, nrm[pick]])
+    else:
+        data = np.hstack([sub, estimate_normals(sub, opt.normal_k)])
 
     # a footprint widens the apparent part by up to a spot radius on each side (``opt.spot``)
     spot_r = 0.5 * (opt.spot[0] + opt.spot[1] * float(np.max(np.linalg.norm(sub, axis=1))))
@@ -220,6 +383,7 @@ def detect_cylinder(
         min_inliers=min_inl,
         refine=False,
         rng=g,
+        batch=50,
     )
     assert model.cylinder is not None
     return model.cylinder, support_plane(pts, model.cylinder, opt)

@@ -3,6 +3,7 @@ points (Eq. 1 inverted), neighbourhood normals."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,11 +36,20 @@ def _unit(v: ArrayLike) -> FloatArray:
 
 def perpendicular_frame(w: ArrayLike) -> tuple[FloatArray, FloatArray]:
     """Two unit vectors ``e1, e2`` with ``(e1, e2, w)`` right-handed and orthonormal."""
-    wu = _unit(w)
-    helper = np.array([1.0, 0.0, 0.0]) if abs(wu[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = _unit(np.cross(helper, wu))
-    e2 = np.cross(wu, e1)
-    return e1, np.asarray(e2, dtype=np.float64)
+    # scalar arithmetic (this runs in every iteration of the fits): the same vectors as
+    # e1 = unit(helper x w), e2 = w x e1 with helper = x (or y when w is near x)
+    x, y, z = (float(c) for c in np.asarray(w, dtype=np.float64).reshape(3))
+    n = math.sqrt(x * x + y * y + z * z)
+    x, y, z = x / n, y / n, z / n
+    if abs(x) < 0.9:  # helper (1, 0, 0): helper x w = (0, -z, y)
+        m = math.sqrt(z * z + y * y)
+        a0, a1, a2 = 0.0, -z / m, y / m
+    else:  # helper (0, 1, 0): helper x w = (z, 0, -x)
+        m = math.sqrt(z * z + x * x)
+        a0, a1, a2 = z / m, 0.0, -x / m
+    e1 = np.array([a0, a1, a2])
+    e2 = np.array([y * a2 - z * a1, z * a0 - x * a2, x * a1 - y * a0])
+    return e1, e2
 
 
 @dataclass(frozen=True)
@@ -85,13 +95,11 @@ class Cylinder:
         miss, ``t`` is the range of closest approach to the axis and ``gap`` (> 0) how far the
         ray passes outside the surface there.
         """
-        t, gap = _ray_cylinder(
-            np.asarray(origins, dtype=np.float64),
-            np.asarray(dirs, dtype=np.float64),
-            self.point,
-            self.direction,
-            np.asarray(self.radius),
-        )
+        o = np.asarray(origins, dtype=np.float64)
+        u = np.asarray(dirs, dtype=np.float64)
+        if o.ndim == 2 and u.shape == o.shape and o.shape[1] == 3:
+            return _ray_cylinder_rows(o, u, self.point, self.direction, self.radius)
+        t, gap = _ray_cylinder(o, u, self.point, self.direction, np.asarray(self.radius))
         return t, gap
 
     def with_point_near(self, reference: ArrayLike) -> Cylinder:
@@ -99,6 +107,46 @@ class Cylinder:
         ref = np.asarray(reference, dtype=np.float64)
         a = self.point + float((ref - self.point) @ self.direction) * self.direction
         return Cylinder(a, self.direction, self.radius)
+
+
+#: Beams per block of :func:`_ray_cylinder_rows` (its temporaries stay in the CPU's cache).
+RAY_BLOCK = 16384
+
+
+def _ray_cylinder_rows(
+    o: FloatArray, u: FloatArray, a: FloatArray, w: FloatArray, r: float
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`_ray_cylinder` for ``(N, 3)`` beams and one cylinder, by coordinate (no ``(N, 3)``
+    temporaries; the pipeline calls it on every beam of the cloud several times), in blocks of
+    :data:`RAY_BLOCK` beams."""
+    n = o.shape[0]
+    if n <= RAY_BLOCK:
+        return _ray_cylinder_block(o, u, a, w, r)
+    t, gap = np.empty(n), np.empty(n)
+    for s in range(0, n, RAY_BLOCK):
+        t[s : s + RAY_BLOCK], gap[s : s + RAY_BLOCK] = _ray_cylinder_block(
+            o[s : s + RAY_BLOCK], u[s : s + RAY_BLOCK], a, w, r
+        )
+    return t, gap
+
+
+def _ray_cylinder_block(
+    o: FloatArray, u: FloatArray, a: FloatArray, w: FloatArray, r: float
+) -> tuple[FloatArray, FloatArray]:
+    v0, v1, v2 = o[:, 0] - a[0], o[:, 1] - a[1], o[:, 2] - a[2]
+    u0, u1, u2 = u[:, 0], u[:, 1], u[:, 2]
+    vw = v0 * w[0] + v1 * w[1] + v2 * w[2]
+    uw = u0 * w[0] + u1 * w[1] + u2 * w[2]
+    aa = np.maximum(u0 * u0 + u1 * u1 + u2 * u2 - uw * uw, 1e-300)
+    bb = v0 * u0 + v1 * u1 + v2 * u2 - vw * uw
+    cc = v0 * v0 + v1 * v1 + v2 * v2 - vw * vw
+    t_ca = -bb / aa
+    d_ca2 = np.maximum(cc - bb * bb / aa, 0.0)
+    disc = aa * (r * r - d_ca2)
+    hit = disc >= 0
+    t = np.where(hit, t_ca - np.sqrt(np.where(hit, disc, 0.0)) / aa, t_ca)
+    gap = np.where(hit, 0.0, np.sqrt(d_ca2) - r)
+    return np.asarray(t, dtype=np.float64), np.asarray(gap, dtype=np.float64)
 
 
 def _ray_cylinder(

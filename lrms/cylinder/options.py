@@ -45,5 +45,5 @@ class DetectOptions:
     max_planes: int = 6
     wall_min_share: float = 0.03
     wall_min_extent: float = 0.5
-    wall_sample: int = 30_000
+    wall_sample: int = 5_000
     spot: tuple[float, float] = (0.0, 0.0)

@@ -3,6 +3,7 @@ multi-start, selection by the scene model (beams above the table), grazing weigh
 
 from __future__ import annotations
 
+from contextlib import suppress
 from dataclasses import replace
 
 import numpy as np
@@ -11,7 +12,7 @@ from numpy.typing import ArrayLike, NDArray
 from lrms import kinematics
 from lrms.covariance import NoiseModel
 from lrms.cylinder.bias import GRAZING_SIGMA, bias_corrected, grazing_weighted_fit
-from lrms.cylinder.detect import _top_height, detect_cylinder, dominant_planes, table_height
+from lrms.cylinder.detect import _top_height, background_planes, candidate_pool, detect_cylinder, table_height
 from lrms.cylinder.footprint import BeamOptics, footprint_fit
 from lrms.cylinder.model import Cylinder, Rays, rays_from_points
 from lrms.cylinder.options import DetectOptions
@@ -29,6 +30,10 @@ IntArray = NDArray[np.intp]
 #: mean diameter error on 100 sweeps; 1 and 3 mm did not, docs/cylinder.md section 4.)
 BASE_CLEARANCE = 2e-3
 
+
+#: The cylinder RANSAC reuses the background planes' sample (and its normals) when the planes
+#: left at least this share of ``DetectOptions.sample_size`` points of it.
+REUSE_SHARE = 0.8
 
 #: Default tolerance of a nominal diameter, as a share of it.
 NOMINAL_TOLERANCE = 0.1
@@ -90,11 +95,13 @@ def _multistart(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: DetectOption
     return refine_cylinder(pts, best_cyl, rays=rays, max_rounds=1)
 
 
-def _los_fit(pts: FloatArray, rays: Rays, start: Cylinder, opt: DetectOptions) -> CylinderFit:
+def _los_fit(pts: FloatArray, rays: Rays, start: Cylinder, opt: DetectOptions, multistart: bool = True) -> CylinderFit:
     """The line-of-sight fit from ``start`` on candidate points (their beams ``rays``): inlier
-    selection from ``start``, then :func:`_multistart` around its solution."""
+    selection from ``start``, then (``multistart``) :func:`_multistart` around its solution; else
+    the last solve may be on a subset of the inliers (a start for the selection by the scene
+    model, which refits)."""
     fit = refine_cylinder(pts, start, rays=rays, max_rounds=4, final_full=False, work_size=5000)
-    return _multistart(pts, rays, fit, opt)
+    return _multistart(pts, rays, fit, opt) if multistart else fit
 
 
 def _refine_from(
@@ -103,8 +110,11 @@ def _refine_from(
     line_of_sight: bool,
     rays: Rays | None,
     opt: DetectOptions,
+    multistart: bool = True,
 ) -> CylinderFit:
-    """Orthogonal polish near ``initial``, then the final fit on the whole cloud's candidates."""
+    """Orthogonal polish near ``initial``, then the final fit on the whole cloud's candidates
+    (``multistart``: with :func:`_multistart`; skipped when the selection by the scene model
+    refits from this fit anyway)."""
     band = np.flatnonzero(np.abs(initial.surface_distance(pts)) < 1.5 * opt.threshold)
     if band.size < opt.min_inliers:
         raise FitError(f"no cylinder found: only {band.size} points near the best candidate")
@@ -120,7 +130,7 @@ def _refine_from(
         cand = np.flatnonzero((np.abs(rays.ranges - t) < 2.0 * opt.threshold) & (gap < 2.0 * opt.threshold))
         if cand.size < opt.min_inliers:
             raise FitError(f"no cylinder found: only {cand.size} points on the candidate's lines of sight")
-        fit = _los_fit(pts[cand], rays.subset(cand), rough.cylinder, opt)
+        fit = _los_fit(pts[cand], rays.subset(cand), rough.cylinder, opt, multistart)
     else:
         cand = np.flatnonzero(np.abs(rough.cylinder.surface_distance(pts)) < 2.0 * opt.threshold)
         if cand.size < opt.min_inliers:
@@ -277,8 +287,10 @@ def fit_cylinder(
     best: CylinderFit | None = None
     plane: tuple[FloatArray, float] | None = None
     errors: list[str] = []
+    # the winning attempt's start, candidate rows and whether its multi-start was left for later
+    best_from: tuple[Cylinder, IntArray, bool] = (Cylinder(np.zeros(3), np.ones(3), 1.0), np.arange(0), False)
     n_try = 1 if initial is not None else max(opt.attempts, opt.max_attempts, 1)
-    off_walls = dominant_planes(pts, opt, g)[0] if initial is None else None
+    bg = background_planes(pts, opt, g) if initial is None else None
     for attempt in range(n_try):
         if attempt >= max(opt.attempts, 1) and best is not None and _noise_explains(best):
             break
@@ -286,21 +298,35 @@ def fit_cylinder(
             if initial is not None:
                 start, pl = initial, None
             else:
-                start, pl = detect_cylinder(pts, opt, g, candidates=off_walls)
+                assert bg is not None
+                left = bg.sample[bg.left]
+                if left.size >= REUSE_SHARE * opt.sample_size:
+                    # the background sample left enough points: the RANSAC draws from them, with
+                    # the normals already estimated
+                    start, pl = detect_cylinder(pts, opt, g, candidates=left, normals=bg.normals[bg.left])
+                else:
+                    # mostly background (a room): draw sample_size points off the planes from the
+                    # whole cloud, classifying only those
+                    pool = candidate_pool(pts, bg, opt, g, opt.sample_size)
+                    start, pl = detect_cylinder(pts, opt, g, candidates=pool)
             use = _off_support(pts, start, pl, opt)
-            fit = _refine_from(pts[use], start, line_of_sight, None if rr is None else rr.subset(use), opt)
+            # with a support plane the selection by the scene model below refits with the
+            # multi-start; the attempts need the plain fit only
+            later = pl is not None and initial is None
+            fit = _refine_from(pts[use], start, line_of_sight, None if rr is None else rr.subset(use), opt, not later)
             fit = _reindex(fit, use, pts.shape[0])
         except FitError as exc:
             errors.append(str(exc))
             continue
         if best is None or _better(fit, best):
-            best, plane = fit, pl
+            best, plane, best_from = fit, pl, (start, use, later)
         if initial is None and _plausible(fit, pts, start, opt):
             break
     if best is None:
         last = errors[-1] if errors else "no candidate"
         raise FitError(last if last.startswith("no cylinder found") else f"no cylinder found: {last}")
     base = None
+    selected = False
     if plane is not None:
         pn, po = plane
         denom = float(pn @ best.cylinder.direction)
@@ -310,9 +336,15 @@ def fit_cylinder(
         if rr is not None and initial is None:
             table = table_height(pts, best, plane, opt)
             if table is not None:
-                best = _select_above_table(pts, rr, best, table, opt)
+                chosen = _select_above_table(pts, rr, best, table, opt)
+                selected = chosen is not best  # else the refit failed: the plain fit is kept
+                best = chosen
                 up, height, origin = table
                 base = best.cylinder.point + (height - float((best.cylinder.point - origin) @ up)) * up
+    start, use, later = best_from
+    if later and not selected and rr is not None:  # no table under the part, or its refit failed
+        with suppress(FitError):  # else keep the plain fit
+            best = _reindex(_refine_from(pts[use], start, True, rr.subset(use), opt), use, pts.shape[0])
     footprint_won = False
     if rr is not None and optics is not None:
         fp = footprint_fit(pts, rr, best, optics)

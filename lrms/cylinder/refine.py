@@ -10,6 +10,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
 
+from lrms.cylinder.lm import LosProblem, OrthogonalProblem, levenberg_marquardt
+from lrms.cylinder.lm import covariance as lm_covariance
 from lrms.cylinder.model import Cylinder, Rays, _dot, _ray_cylinder, perpendicular_frame
 from lrms.errors import FitError
 
@@ -261,6 +263,7 @@ def refine_cylinder(
     With ``rays`` (one per point): the line-of-sight fit, covariance from the a priori noise
     model. Without: the orthogonal-distance fit with isotropic ``sigma`` (m); ``sigma=None``
     estimates it from the residuals (the covariance is then scaled by the posterior variance).
+    Each solve is :func:`lrms.cylinder.lm.levenberg_marquardt` with at most ``max_nfev`` steps.
     """
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
@@ -272,20 +275,6 @@ def refine_cylinder(
     cyl = initial.with_point_near(pts.mean(axis=0))
     use_los = rays is not None
     sig = 1.0 if sigma is None else float(sigma)
-
-    def make_fun(frame: _Frame, sel: IntArray) -> tuple[Residuals, Residuals]:
-        if rays is not None:
-            rs = rays.subset(sel)
-            return (
-                lambda th: los_residuals(th, frame, rs.origins, rs.dirs, rs.ranges, rs.sigma_l, rs.sigma_perp),
-                lambda th: los_jacobian(th, frame, rs.origins, rs.dirs, rs.sigma_l, rs.sigma_perp),
-            )
-        ps = pts[sel]
-        sg = np.asarray(sig)
-        return (
-            lambda th: orthogonal_residuals(th, frame, ps, sg),
-            lambda th: orthogonal_jacobian(th, frame, ps, sg),
-        )
 
     def whitened_all(c: Cylinder) -> FloatArray:
         if rays is not None:
@@ -299,11 +288,16 @@ def refine_cylinder(
     idx = np.flatnonzero(whitened_all(cyl) < gate) if use_los else np.arange(pts.shape[0])
     pick = np.random.default_rng(0)
 
+    def problem(sel: IntArray) -> LosProblem | OrthogonalProblem:
+        if rays is not None:
+            return LosProblem(rays.subset(sel))
+        return OrthogonalProblem(pts[sel], sig)
+
     def solve_on(sel: IntArray, c: Cylinder) -> Cylinder:
         if sel.size < 6:
             raise FitError(f"too few inliers left for a cylinder fit ({sel.size})")
-        fr = _Frame.at(c)
-        out = fr.cylinder(_solve(*make_fun(fr, sel), max_nfev)).with_point_near(pts[sel].mean(axis=0))
+        out, _ = levenberg_marquardt(problem(sel), c, max_iter=max_nfev)
+        out = out.with_point_near(pts[sel].mean(axis=0))
         if out.radius <= 0:
             raise FitError("cylinder refinement gave a non-positive radius")
         return out
@@ -332,13 +326,10 @@ def refine_cylinder(
     if partial_solve and final_full:
         cyl = solve_on(idx, cyl)
 
-    frame = _Frame.at(cyl)
-    fun, jfun = make_fun(frame, idx)
-    r0 = fun(np.zeros(5))
-    jac = jfun(np.zeros(5))
+    lin = problem(idx).linearise(cyl)
     dof = max(idx.size - 5, 1)
-    chi2_dof = float(np.sum(r0 * r0) / dof)
-    cov = _covariance(jac)
+    chi2_dof = float(lin.cost / dof)
+    cov = lm_covariance(lin)
     scale = 1.0
     if use_los:
         assert rays is not None
@@ -354,7 +345,7 @@ def refine_cylinder(
         inliers=idx,
         rmse=rmse,
         covariance=cov,
-        frame=(frame.e1, frame.e2),
+        frame=(lin.e1, lin.e2),
         line_of_sight=use_los,
         chi2_dof=chi2_dof,
         sigma_scale=float(np.sqrt(scale)),

@@ -230,7 +230,10 @@ def test_measurements_on_a_miscalibrated_rig_use_the_active_calibration(
     assert b["calibration"] is None
     assert a["calibration"] == {"id": cal["id"], "name": "truth", "created": cal["created"]}
     truth = 0.1375
-    assert b["diameter_m"] - truth < -1.5e-3  # 25 mm of range offset and a tilted plane: -2.5 mm
+    # 25 mm of range offset and a tilted plane: -2.5 mm seen on an idle machine; -0.9 mm once under
+    # heavy load (timing smear, docs/service.md known limits): the calibrated result must be the closer
+    assert b["diameter_m"] - truth < -0.5e-3
+    assert abs(a["diameter_m"] - truth) < abs(b["diameter_m"] - truth)
     # the fit's own noise (u ~ 0.5 mm at 20 deg/s) dominates the calibrated result: within 3 u_c
     assert abs(a["diameter_m"] - truth) <= 3 * a["uncertainty"]["combined_m"]
     tilt = [np.rad2deg(np.arccos(abs(r["axis_direction"][2]))) for r in (b, a)]
