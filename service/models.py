@@ -7,6 +7,8 @@ that a misspelt option is a 422 with the field's name, not a silent default.
 from __future__ import annotations
 
 import math
+import re
+import string
 from datetime import UTC, datetime
 from typing import Annotated, Any, Literal
 
@@ -362,6 +364,59 @@ def cron_min_interval_s(cron: str, firings: int = CRON_FIRINGS_CHECKED, below: f
     return shortest
 
 
+#: A schedule's part id: a part id with placeholders (:func:`render_part_id`).
+PART_ID_TEMPLATE_PATTERN = r"^[A-Za-z0-9{][A-Za-z0-9_.:/{}-]{0,127}$"
+PART_ID_FIELDS = ("date", "time", "n")
+
+
+def render_part_id(template: str, when: float, n: int) -> str:
+    """The part id of a schedule's ``n``-th run (from 1) at ``when`` (Unix time): ``{date}`` is the
+    UTC date ``YYYYMMDD``, ``{time}`` the UTC time ``HHMMSS``, ``{n}`` the run number (format specs
+    as Python's: ``{n:04d}``). ValueError for another placeholder, a bad format spec, or an id that
+    is not a valid part id."""
+    t = datetime.fromtimestamp(when, tz=UTC)
+    values: dict[str, Any] = {"date": t.strftime("%Y%m%d"), "time": t.strftime("%H%M%S"), "n": n}
+    try:
+        for _, field, _, conversion in string.Formatter().parse(template):
+            if field is not None and (field not in PART_ID_FIELDS or conversion is not None):
+                raise ValueError(
+                    f"unknown placeholder {{{field}}} in {template!r}; known: "
+                    + ", ".join(f"{{{f}}}" for f in PART_ID_FIELDS)
+                )
+        out = template.format(**values)
+    except (IndexError, KeyError, ValueError) as exc:
+        raise ValueError(f"part id pattern {template!r}: {exc}") from None
+    if re.fullmatch(PART_ID_PATTERN, out) is None:
+        raise ValueError(f"part id pattern {template!r} makes {out!r}, which is not a part id ({PART_ID_PATTERN})")
+    return out
+
+
+class ScheduledMeasurement(MeasurementRequest):
+    """A schedule's measurement: free form, or a part of a recipe whose ``part_id`` may be a
+    pattern (``"{date}-{n}"``), filled in at each run (:func:`render_part_id`)."""
+
+    part_id: str | None = Field(
+        default=None,
+        pattern=PART_ID_TEMPLATE_PATTERN,
+        description="the part id, or a pattern of one: {date} (UTC, YYYYMMDD), {time} (UTC, HHMMSS), {n} (the "
+        "schedule's run number, from 1; {n:04d} pads it)",
+    )
+
+    @field_validator("part_id")
+    @classmethod
+    def _renders(cls, v: str | None) -> str | None:
+        if v is not None:
+            render_part_id(v, 0.0, 1)
+        return v
+
+    def for_run(self, when: float, n: int) -> MeasurementRequest:
+        """The measurement request of the schedule's ``n``-th run at ``when``."""
+        data = self.model_dump(exclude_unset=True)
+        if self.part_id is not None:
+            data["part_id"] = render_part_id(self.part_id, when, n)
+        return MeasurementRequest.model_validate(data)
+
+
 class ScheduleRequest(_Strict):
     """A schedule: a cron expression (UTC) or an interval, and the measurement to run."""
 
@@ -378,7 +433,7 @@ class ScheduleRequest(_Strict):
     interval_s: float | None = Field(
         default=None, ge=1.0, le=366 * 86400.0, description="at least the rig's [schedules] min_interval_s"
     )
-    measurement: MeasurementRequest
+    measurement: ScheduledMeasurement
 
     @field_validator("cron")
     @classmethod
@@ -391,8 +446,6 @@ class ScheduleRequest(_Strict):
 
     @model_validator(mode="after")
     def _one_trigger(self) -> ScheduleRequest:
-        if self.measurement.recipe is not None:
-            raise ValueError("measurement.recipe: schedules take free-form measurements only (not recipes, yet)")
         if (self.cron is None) == (self.interval_s is None):
             raise ValueError("give exactly one of cron or interval_s")
         return self

@@ -165,7 +165,12 @@ def _um(v: Any) -> str:
     return "-" if f is None else f"{f * 1e6:.1f}"
 
 
-_env.filters.update(mm=_mm, num=_num, um=_um, utc=_utc)
+def _deg(v: Any) -> str:
+    f = _finite(v)
+    return "-" if f is None else f"{f:.3f} deg"
+
+
+_env.filters.update(mm=_mm, num=_num, um=_um, utc=_utc, deg=_deg)
 
 
 def _values(result: dict[str, Any]) -> list[tuple[str, str]]:

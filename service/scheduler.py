@@ -7,6 +7,12 @@ one by one; a schedule that came due during the outage runs once at start-up. A 
 due while the job queue is full (``[jobs] max_queued``) is skipped, not piled up: logged with
 the reason, counted (``lrms_schedule_runs_skipped_total{reason="queue_full"}``), and the
 schedule's ``last_run`` moves on with ``last_measurement_id`` null.
+
+A schedule may measure parts of a recipe: its template names the recipe (and optionally a pinned
+``recipe_version``; default: the latest version when the run fires) and a part id, which may be a
+pattern (``"{date}-{n}"``, :func:`service.models.render_part_id`; ``{n}`` counts the schedule's
+measurements from 1). A run the recipe store refuses (the recipe retired or gone since) is skipped
+the same way (``reason="refused"``), with the reason logged.
 """
 
 from __future__ import annotations
@@ -18,8 +24,11 @@ from datetime import UTC, datetime
 
 from croniter import croniter
 
+from service.errors import RequestFieldError
 from service.jobs import JobRunner, QueueFull
-from service.models import MeasurementRequest, ScheduleRequest
+from service.models import MeasurementRequest, ScheduledMeasurement, ScheduleRequest
+from service.parts import resolve_part
+from service.recipestore import RecipeStore
 from service.store import Schedule, Store
 
 log = logging.getLogger(__name__)
@@ -36,9 +45,10 @@ def next_run(cron: str | None, interval_s: float | None, after: float) -> float:
 
 
 class Scheduler:
-    def __init__(self, store: Store, runner: JobRunner) -> None:
+    def __init__(self, store: Store, runner: JobRunner, recipes: RecipeStore | None = None) -> None:
         self.store = store
         self.runner = runner
+        self.recipes = recipes
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._thread: threading.Thread | None = None
@@ -48,8 +58,9 @@ class Scheduler:
     def add(self, req: ScheduleRequest) -> Schedule:
         now = time.time()
         nxt = next_run(req.cron, req.interval_s, now)
+        m = req.measurement  # a recipe's template keeps what was given: the recipe supplies the rest
         s = self.store.add_schedule(
-            req.measurement.model_dump(mode="json"),
+            m.model_dump(mode="json", exclude_unset=m.recipe is not None),
             cron=req.cron,
             interval_s=req.interval_s,
             next_run=nxt,
@@ -81,12 +92,17 @@ class Scheduler:
             if due <= t:
                 mid = None
                 try:
-                    m = self.runner.submit(MeasurementRequest.model_validate(s.template), schedule_id=s.id)
+                    req = self.request(s, t)
+                    m = self.runner.submit(req, schedule_id=s.id)
                     mid = m.id
+                    if req.recipe is not None and req.recipe_version is not None and req.part_id is not None:
+                        assert self.recipes is not None
+                        self.recipes.link(m.id, req.recipe, req.recipe_version, req.part_id, req.operator)
                     self.fired += 1
-                except QueueFull as exc:
+                except (QueueFull, RequestFieldError) as exc:
                     self.skipped += 1
-                    self.runner.metrics.schedule_skipped.labels("queue_full").inc()
+                    reason = "queue_full" if isinstance(exc, QueueFull) else "refused"
+                    self.runner.metrics.schedule_skipped.labels(reason).inc()
                     log.warning("schedule %s (%s): run skipped: %s", s.id, s.name, exc)
                 except Exception:  # a bad stored template must not stop the other schedules
                     log.exception("schedule %s could not queue its measurement", s.id)
@@ -94,6 +110,17 @@ class Scheduler:
                 self.store.mark_schedule_run(s.id, t, due, mid)
             earliest = min(earliest, due)
         return earliest
+
+    def request(self, s: Schedule, when: float) -> MeasurementRequest:
+        """The measurement schedule ``s`` queues at ``when``: its template, or for a recipe's part
+        the part id rendered for this run and the recipe (latest or pinned version) filled in."""
+        template = ScheduledMeasurement.model_validate(s.template)
+        if template.recipe is None:
+            return MeasurementRequest.model_validate(s.template)
+        if self.recipes is None:
+            raise RequestFieldError([(("recipe",), "this scheduler has no recipe store")])
+        n = self.store.count_schedule_measurements(s.id) + 1
+        return resolve_part(template.for_run(when, n), self.recipes)
 
     def _loop(self) -> None:
         while not self._stop.is_set():

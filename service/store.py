@@ -426,6 +426,11 @@ class Store:
                 .values(last_run=last_run, next_run=next_run, last_measurement_id=measurement_id)
             )
 
+    def count_schedule_measurements(self, sid: str) -> int:
+        """How many measurements schedule ``sid`` has queued (every state)."""
+        rows = self._rows(select(func.count().label("n")).select_from(M).where(M.c.schedule_id == sid))
+        return int(rows[0]["n"])
+
 
 def _measurement(row: RowMapping) -> Measurement:
     return Measurement(

@@ -115,7 +115,7 @@ class Service:
             max_queued=config.jobs.max_queued,
             expected_duration_s=lambda req: expected_duration_s(req, config),
         )
-        self.scheduler = Scheduler(self.store, self.runner)
+        self.scheduler = Scheduler(self.store, self.runner, self.recipes)
         self.rig_info = rig_info or (lambda: {})
         self.rig_health = rig_health
         """``/healthz``'s rig part (``status``, ``reasons``, rig process, drive); None: no rig to check."""

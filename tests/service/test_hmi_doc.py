@@ -27,8 +27,16 @@ def sh_blocks(text: str) -> list[str]:
 def test_the_doc_has_the_workflow() -> None:
     blocks = sh_blocks(DOC.read_text())
     joined = "\n".join(blocks)
-    assert len(blocks) >= 7
-    for call in ("/api/v1/recipes", "/api/v1/measurements", "/events", "/history.csv", "/spc"):
+    assert len(blocks) >= 9
+    for call in (
+        "/api/v1/recipes",
+        "/api/v1/measurements",
+        "/events",
+        "/report.pdf",
+        "/report.html",
+        "/history.csv",
+        "/spc",
+    ):
         assert call in joined
 
 
@@ -56,4 +64,8 @@ def test_the_hmi_doc_runs_against_a_live_service(tmp_path: Path) -> None:
     assert re.search(r'^data: \{"id": "[0-9a-f]{16}", "state": "done"', out, flags=re.M), out  # the last event
     assert re.search(r"^[0-9a-f]{16},done,4711,conforms$", out, flags=re.M), out  # the history's CSV row
     assert "a control chart needs 2" in out
+    assert re.search(r'^%PDF-\nclass="outcome conforms">conforms<\nSHA-256 [0-9a-f]{64}$', out, flags=re.M), out
+    spc = re.search(r'^\{"n":2,"mean_mm":([\d.]+),"limits_mm":\[([\d.]+),([\d.]+)\],.*"flagged":\[\]\}$', out, re.M)
+    assert spc and float(spc[2]) < float(spc[1]) < float(spc[3]), out  # LCL < mean < UCL
+    assert re.search(r"^[0-9a-f]{16},done,4712,conforms$", out, flags=re.M) is None  # the CSV came before part 2
     assert '422\n["body","recipe"]\n' in out and "no recipe 'NO-SUCH-PART'" in out

@@ -348,7 +348,8 @@ def test_an_elbow_part_is_decided_on_its_diameter_with_the_fit_sigma(
 
     def elbow(ctx: JobContext) -> dict[str, Any]:
         assert ctx.request.target == "elbow" and ctx.request.options.degree_deg == 90.0
-        return {"model": "elbow", "diameter_m": 0.2190, "bend_radius_m": 0.305, "sigma": {"D_m": 3e-4}}
+        sigma = {"D_m": 3e-4, "A_m": 5e-4}
+        return {"model": "elbow", "diameter_m": 0.2190, "bend_radius_m": 0.305, "degree": 90.0, "sigma": sigma}
 
     body = {
         "name": "ELBOW-219",
@@ -366,5 +367,10 @@ def test_an_elbow_part_is_decided_on_its_diameter_with_the_fit_sigma(
         r = client.post("/api/v1/measurements", json={"recipe": "ELBOW-219", "part_id": "E1"})
         assert r.status_code == 202, r.text
         dec = wait_done(client, r.json()["id"])["result"]["decision"]
-    assert dec["outcome"] == "conforms" and dec["value_m"] == 0.2190
+    # D is decided with U = 2 sigma_D; the bend angle is not estimated by the fit: the part cannot be decided
+    # (tests/service/test_recipe_elbows.py decides A and the angle)
+    outcomes = [(c["characteristic"], c["outcome"]) for c in dec["characteristics"]]
+    assert outcomes == [("diameter", "conforms"), ("bend_radius", "conforms"), ("bend_angle", "cannot_decide")]
+    assert dec["value_m"] == 0.2190
     assert dec["expanded_m"] == pytest.approx(6e-4) and dec["lsl_m"] == pytest.approx(0.2171)
+    assert dec["outcome"] == "cannot_decide"

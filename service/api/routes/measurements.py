@@ -18,8 +18,8 @@ from service.api.errors import responses
 from service.db import RIG_ID_LENGTH, RIG_ID_RE
 from service.errors import RequestFieldError
 from service.models import MeasurementOut, MeasurementRequest, resolve_sweep
-from service.recipes import expand_request
-from service.store import FINAL_STATES, Measurement, NotFound
+from service.parts import resolve_part
+from service.store import FINAL_STATES, Measurement
 
 router = APIRouter(prefix="/measurements", tags=["measurements"], dependencies=READ, responses=READ_RESPONSES)
 _MEASUREMENTS = TypeAdapter(list[MeasurementOut])
@@ -128,21 +128,9 @@ def cancel_measurement(mid: MeasurementId, service: ServiceDep) -> MeasurementOu
 
 
 def _expand(req: MeasurementRequest, service: Service) -> MeasurementRequest:
-    """A part's request with its recipe's measurement filled in (:func:`service.recipes.expand_request`)."""
-    assert req.recipe is not None
+    """A part's request with its recipe's measurement filled in (:func:`service.parts.resolve_part`)."""
     try:
-        recipe = (
-            service.recipes.latest(req.recipe)
-            if req.recipe_version is None
-            else service.recipes.version(req.recipe, req.recipe_version)
-        )
-    except NotFound as exc:
-        field = "recipe_version" if req.recipe_version is not None and service.recipes.exists(req.recipe) else "recipe"
-        raise RequestFieldError([(("body", field), str(exc))]) from None
-    if recipe.retired:
-        raise RequestFieldError([(("body", "recipe"), f"recipe {req.recipe!r} is retired")])
-    try:
-        return expand_request(req, recipe, recipe.version)
+        return resolve_part(req, service.recipes)
     except RequestFieldError as exc:
         raise exc.under("body") from None
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from typing import Annotated
 
 from fastapi import APIRouter, Path, Response
@@ -12,7 +13,8 @@ from service.api.deps import ADMIN, READ, READ_RESPONSES, ServiceDep
 from service.api.errors import responses
 from service.api.routes.measurements import ID_MAX_LENGTH, RigFilter
 from service.errors import RequestFieldError
-from service.models import ScheduleOut, ScheduleRequest, check_schedule
+from service.models import ScheduleOut, ScheduleRequest, check_schedule, resolve_sweep
+from service.parts import resolve_part
 from service.store import Schedule
 
 router = APIRouter(prefix="/schedules", tags=["schedules"], dependencies=READ, responses=READ_RESPONSES)
@@ -44,11 +46,23 @@ def schedule_out(s: Schedule) -> ScheduleOut:
 )
 def create_schedule(req: ScheduleRequest, service: ServiceDep) -> ScheduleOut:
     """Add a schedule. Its measurement is checked against the rig as ``POST /measurements`` is,
-    and its firings must be at least ``[schedules] min_interval_s`` apart."""
+    and its firings must be at least ``[schedules] min_interval_s`` apart. A measurement may be a
+    part of a recipe (``recipe``, ``part_id`` as a pattern such as ``"{date}-{n}"``; the recipe's
+    latest version when each run fires, unless ``recipe_version`` pins one)."""
     try:
         check_schedule(req, service.config)
     except RequestFieldError as exc:
         raise exc.under("body") from None
+    if req.measurement.recipe is not None:  # the recipe exists, is in use, and supplies the measurement
+        try:
+            part = resolve_part(req.measurement.for_run(time.time(), 1), service.recipes)
+        except RequestFieldError as exc:
+            raise exc.under("body", "measurement") from None
+        try:
+            resolve_sweep(part.sweep, service.config)
+        except RequestFieldError as exc:
+            msg = f"recipe {part.recipe!r}'s sweep does not fit this rig: {exc}"
+            raise RequestFieldError([(("body", "measurement", "recipe"), msg)]) from None
     return schedule_out(service.scheduler.add(req))
 
 
