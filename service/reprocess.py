@@ -1,9 +1,10 @@
 """Re-processing archived raw logs on Dask (``lrms reprocess``).
 
-Every ``done`` measurement of the result store (optionally since a date, of one recipe) is
-re-fitted from its raw MCAP log: decode, mapping, fit and uncertainty, the decision when the
-result has one (:func:`service.replay.replay`, the code of the live rig), optionally with another
-rig calibration. One measurement is one task (:func:`reprocess_one`, a plain function of a
+Every ``done`` measurement of the result store (optionally created since and until a date, of
+one rig, of one recipe) is re-fitted from its raw MCAP log: decode, mapping, fit and uncertainty,
+the decision when the result has one (:func:`service.replay.replay`, the code of the live rig),
+optionally with another rig calibration (a file, or the id of one kept before or of the service's
+calibration store: :func:`resolve_calibration`). One measurement is one task (:func:`reprocess_one`, a plain function of a
 picklable :class:`Task`) on a Dask cluster: a :class:`distributed.LocalCluster` on this machine
 (worker processes of one thread each, on 127.0.0.1) or an existing cluster by its scheduler's
 address; ``workers=0`` runs the same function in this process (the serial baseline).
