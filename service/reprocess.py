@@ -4,8 +4,9 @@ Every ``done`` measurement of the result store (optionally created since and unt
 one rig, of one recipe) is re-fitted from its raw MCAP log: decode, mapping, fit and uncertainty,
 the decision when the result has one (:func:`service.replay.replay`, the code of the live rig),
 optionally with another rig calibration (a file, or the id of one kept before or of the service's
-calibration store: :func:`resolve_calibration`). One measurement is one task (:func:`reprocess_one`, a plain function of a
-picklable :class:`Task`) on a Dask cluster: a :class:`distributed.LocalCluster` on this machine
+calibration store: :func:`resolve_calibration`). One measurement is one task
+(:func:`reprocess_one`, a plain function of a picklable :class:`Task`) on a Dask cluster: a
+:class:`distributed.LocalCluster` on this machine
 (worker processes of one thread each, on 127.0.0.1) or an existing cluster by its scheduler's
 address; ``workers=0`` runs the same function in this process (the serial baseline).
 
