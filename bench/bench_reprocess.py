@@ -31,13 +31,13 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 
 def _run(label: str, measurements: list[Any], executor: Any, store_path: Path) -> dict[str, float]:
-    from sqlalchemy import create_engine
-
     from service import reprocess as rp
+    from service.store import Store
     from service.versionstore import VersionStore
 
-    store_path.unlink(missing_ok=True)  # a store of its own, empty: every sweep is fitted
-    engine = create_engine(f"sqlite:///{store_path}")
+    for suffix in ("", "-wal", "-shm"):  # a store of its own, empty: every sweep is fitted
+        Path(f"{store_path}{suffix}").unlink(missing_ok=True)
+    engine = Store(store_path).engine  # the result store's schema, migrated (result_versions: 0005)
     store = VersionStore(engine)
     load = os.getloadavg()[0]
     t = time.perf_counter()

@@ -11,6 +11,9 @@ active one and record which one they used (:mod:`service.fitting`).
 
 The table is part of the result store's schema (:data:`service.db.schema.calibrations`, created by
 migration 0003); the store takes the result store's ``sqlalchemy.Engine`` (:attr:`service.store.Store.engine`).
+Its writes are write transactions of that database (:func:`service.db.tx.write_transaction`: one
+write lock on SQLite and PostgreSQL), so services of several rigs storing and activating at once
+never number two calibrations alike nor leave two active for one rig.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from lrms.calibration import CalibrationError, CalibrationResult
 from lrms.errors import LrmsError
 from lrms.kinematics import RigModel
 from service.db.schema import calibrations
+from service.db.tx import write_transaction
 from service.store import NotFound, StoreError
 
 
@@ -131,7 +135,7 @@ class CalibrationStore:
                 raise StoreError(f"a calibration's {label} is text")
         created = datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds")
         cid = uuid.uuid4().hex[:16]
-        with self.engine.begin() as conn:
+        with write_transaction(self.engine) as conn:
             seq = conn.execute(sa.select(sa.func.coalesce(sa.func.max(calibrations.c.seq), 0))).scalar_one()
             conn.execute(
                 calibrations.insert().values(
@@ -172,7 +176,7 @@ class CalibrationStore:
 
     def activate(self, cid: str) -> StoredCalibration:
         """Make ``cid`` its rig's active calibration (the rig's other calibrations become inactive)."""
-        with self.engine.begin() as conn:
+        with write_transaction(self.engine) as conn:
             row = conn.execute(sa.select(calibrations.c.rig_id).where(calibrations.c.id == cid)).first()
             if row is None:
                 raise NotFound(f"no calibration {cid}")

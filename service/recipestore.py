@@ -9,7 +9,9 @@ Three tables of the result store's schema (:mod:`service.db.schema`, created by 
   history of a recipe (:meth:`RecipeStore.history`) without reading the measurement store's tables.
 
 :class:`RecipeStore` takes the result store's :class:`sqlalchemy.Engine` (:attr:`service.store.Store.engine`:
-SQLite or PostgreSQL, shared by the rigs of a plant).
+SQLite or PostgreSQL, shared by the rigs of a plant); its writes are write transactions of that
+database (:func:`service.db.tx.write_transaction`), so a recipe and its version 1 are stored
+together or not at all, and two rigs storing a new version at once get versions n+1 and n+2.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import sqlalchemy as sa
 from sqlalchemy.exc import IntegrityError
 
 from service.db import schema
+from service.db.tx import write_transaction
 from service.recipes import Recipe, RecipeOut
 from service.store import NotFound, StoreError
 
@@ -64,7 +67,7 @@ class RecipeStore:
         """Version 1 of a new recipe; :class:`RecipeConflict` if the name exists (retired or not)."""
         now = time.time()
         try:
-            with self.engine.begin() as conn:
+            with write_transaction(self.engine) as conn:
                 conn.execute(RECIPES.insert().values(name=recipe.name, latest_version=1, retired=False, created_at=now))
                 conn.execute(
                     RECIPE_VERSIONS.insert().values(name=recipe.name, version=1, created_at=now, body=_body(recipe))
@@ -79,7 +82,7 @@ class RecipeStore:
         """A new version of an existing recipe (a retired one is in use again)."""
         now = time.time()
         try:
-            with self.engine.begin() as conn:
+            with write_transaction(self.engine) as conn:
                 row = conn.execute(sa.select(RECIPES.c.latest_version).where(RECIPES.c.name == recipe.name)).first()
                 if row is None:
                     raise RecipeNotFound(f"no recipe {recipe.name!r}: POST /api/v1/recipes creates it")
@@ -100,7 +103,7 @@ class RecipeStore:
 
     def retire(self, name: str) -> RecipeOut:
         """Mark a recipe retired: its versions stay readable, new parts of it are refused."""
-        with self.engine.begin() as conn:
+        with write_transaction(self.engine) as conn:
             n = conn.execute(
                 RECIPES.update().where(RECIPES.c.name == name).values(retired=True, retired_at=time.time())
             ).rowcount
@@ -158,7 +161,7 @@ class RecipeStore:
     # -- parts ----------------------------------------------------------------------------
     def link(self, measurement_id: str, recipe: str, version: int, part_id: str, operator: str | None) -> None:
         """Record that ``measurement_id`` measured part ``part_id`` of ``recipe`` version ``version``."""
-        with self.engine.begin() as conn:
+        with write_transaction(self.engine) as conn:
             conn.execute(
                 RECIPE_MEASUREMENTS.insert().values(
                     measurement_id=measurement_id,

@@ -1,10 +1,12 @@
 """Re-processing archived raw logs on Dask (``lrms reprocess``).
 
-Every ``done`` measurement of the result store (optionally since a date, of one recipe) is
-re-fitted from its raw MCAP log: decode, mapping, fit and uncertainty, the decision when the
-result has one (:func:`service.replay.replay`, the code of the live rig), optionally with another
-rig calibration. One measurement is one task (:func:`reprocess_one`, a plain function of a
-picklable :class:`Task`) on a Dask cluster: a :class:`distributed.LocalCluster` on this machine
+Every ``done`` measurement of the result store (optionally created since and until a date, of
+one rig, of one recipe) is re-fitted from its raw MCAP log: decode, mapping, fit and uncertainty,
+the decision when the result has one (:func:`service.replay.replay`, the code of the live rig),
+optionally with another rig calibration (a file, or the id of one kept before or of the service's
+calibration store: :func:`resolve_calibration`). One measurement is one task
+(:func:`reprocess_one`, a plain function of a picklable :class:`Task`) on a Dask cluster: a
+:class:`distributed.LocalCluster` on this machine
 (worker processes of one thread each, on 127.0.0.1) or an existing cluster by its scheduler's
 address; ``workers=0`` runs the same function in this process (the serial baseline).
 
@@ -32,11 +34,11 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Any, Literal, TextIO
 
-from sqlalchemy import Engine, text
+from sqlalchemy import Engine
 
 from service.config import RigConfig
 from service.errors import ServiceError
-from service.versionstore import LOGGED_CALIBRATION, VersionStore
+from service.versionstore import LOGGED_CALIBRATION, VersionStore, VersionStoreError
 
 Status = Literal["done", "skipped", "failed"]
 
@@ -72,30 +74,44 @@ class Archived:
     recipe_version: int | None = None
 
 
-def parse_since(value: str) -> float:
-    """``--since``: an ISO date or date-time (UTC when it names no zone) as s since the epoch."""
+def parse_since(value: str, flag: str = "--since") -> float:
+    """``--since`` / ``--until``: an ISO date or date-time (UTC when it names no zone) as s since the epoch."""
     try:
         t = dt.datetime.fromisoformat(value)
     except ValueError:
-        raise ReprocessError(f"--since {value!r}: not an ISO date (2026-01-31 or 2026-01-31T08:00)") from None
+        raise ReprocessError(f"{flag} {value!r}: not an ISO date (2026-01-31 or 2026-01-31T08:00)") from None
     if t.tzinfo is None:
         t = t.replace(tzinfo=dt.UTC)
     return t.timestamp()
 
 
-def archived_measurements(engine: Engine, since: float | None = None, recipe: str | None = None) -> list[Archived]:
-    """Finished measurements with a raw log, oldest first (``recipe``: the request's ``recipe``)."""
-    q = (
-        "SELECT id, created_at, request, result, raw_path FROM measurements"
-        " WHERE state = 'done' AND raw_path IS NOT NULL"
+def archived_measurements(
+    engine: Engine,
+    since: float | None = None,
+    recipe: str | None = None,
+    *,
+    until: float | None = None,
+    rig: str | None = None,
+) -> list[Archived]:
+    """Finished measurements with a raw log, oldest first: created at ``since`` or later and before
+    ``until`` (s since the epoch), of rig ``rig`` (its ``rig_id``), of ``recipe`` (the request's
+    ``recipe``)."""
+    from sqlalchemy import select
+
+    from service.db.schema import measurements as M
+
+    q = select(M.c.id, M.c.created_at, M.c.request, M.c.result, M.c.raw_path).where(
+        M.c.state == "done", M.c.raw_path.is_not(None)
     )
-    params: dict[str, Any] = {}
     if since is not None:
-        q += " AND created_at >= :since"
-        params["since"] = since
-    q += " ORDER BY created_at, id"
+        q = q.where(M.c.created_at >= since)
+    if until is not None:
+        q = q.where(M.c.created_at < until)
+    if rig is not None:
+        q = q.where(M.c.rig_id == rig)
+    q = q.order_by(M.c.created_at, M.c.id)
     with engine.connect() as conn:
-        rows = conn.execute(text(q), params).all()
+        rows = conn.execute(q).all()
     out = []
     recipes: dict[tuple[str, int], dict[str, Any]] = {}
     for mid, created, request, result, raw_path in rows:
@@ -427,7 +443,13 @@ def reprocess(
     for out in executor(tasks):
         summary.cpu_s += out.cpu_s
         if out.status == "done" and out.result is not None and out.raw_sha256 is not None:
-            number = store.add(out.measurement_id, out.raw_sha256, calibration_id, sw, out.result)
+            try:
+                number: int | None = store.add(out.measurement_id, out.raw_sha256, calibration_id, sw, out.result)
+            except VersionStoreError as exc:  # this result cannot be stored: its task failed, the run goes on
+                summary.failed.append({"measurement_id": out.measurement_id, "reason": str(exc)})
+                if progress is not None:
+                    progress(summary)
+                continue
             if number is None:
                 summary.skipped += 1
             else:
@@ -520,9 +542,22 @@ def write_parquet(path: str | Path, store: VersionStore, measurements: Iterable[
     return len(versions)
 
 
-def load_calibration(ref: str, store: VersionStore) -> tuple[str, dict[str, Any]]:
+@dataclass(frozen=True)
+class ChosenCalibration:
+    """``--calibration``, resolved: its id (as result versions record it), the ``[kinematics]`` keys
+    that replace the logged ones (every term of its rig model), the rig it belongs to (None: not
+    known) and where it came from."""
+
+    id: str
+    kinematics: dict[str, Any]
+    rig_id: str | None
+    origin: Literal["file", "reprocess", "service"]
+
+
+def resolve_calibration(ref: str, store: VersionStore) -> ChosenCalibration:
     """``--calibration``: a calibration file (a path or an fsspec URL; kept in the store under its
-    id) or the id of one kept before. Returns ``(id, [kinematics] keys)``."""
+    id), or the id (or a prefix of it) of a calibration of the service's calibration store or of
+    one ``lrms reprocess`` kept before."""
     from service.replay import kinematics_of_calibration
 
     if "://" in ref or Path(ref).exists():
@@ -534,6 +569,12 @@ def load_calibration(ref: str, store: VersionStore) -> tuple[str, dict[str, Any]
         except (OSError, ValueError) as exc:
             raise ReprocessError(f"cannot read the calibration {ref}: {exc}") from None
         kin = kinematics_of_calibration(cal)  # refuses what is not a calibration before it is kept
-        return store.put_calibration(cal, source=ref), kin
-    cid, cal = store.get_calibration(ref)
-    return cid, kinematics_of_calibration(cal)
+        return ChosenCalibration(store.put_calibration(cal, source=ref), kin, None, "file")
+    found = store.find_calibration(ref)
+    return ChosenCalibration(found.id, kinematics_of_calibration(found.calibration), found.rig_id, found.origin)
+
+
+def load_calibration(ref: str, store: VersionStore) -> tuple[str, dict[str, Any]]:
+    """:func:`resolve_calibration`'s id and ``[kinematics]`` keys."""
+    chosen = resolve_calibration(ref, store)
+    return chosen.id, chosen.kinematics

@@ -11,7 +11,11 @@ unique: a result is computed once per such key, and a re-run skips it.
 SQLAlchemy Core 2.x on an :class:`sqlalchemy.Engine` (SQLite file or PostgreSQL: the same
 tables of :mod:`service.db.schema`, created by migration 0005).
 Calibrations given as files are kept in ``reprocess_calibrations`` under their id (the first 16 hex digits of the
-SHA-256 of their canonical JSON), so ``lrms reprocess --calibration ID`` can name one again.
+SHA-256 of their canonical JSON), so ``lrms reprocess --calibration ID`` can name one again; an id
+may also name a calibration of the service's calibration store (the ``calibrations`` table,
+:mod:`service.calstore`). Writes are write transactions of the database
+(:func:`service.db.tx.write_transaction`): numbering a new version is safe with several
+``lrms reprocess`` clients and the rigs writing at once.
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ import json
 import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 from sqlalchemy import (
     Engine,
@@ -32,6 +36,7 @@ from sqlalchemy import (
 from sqlalchemy.exc import IntegrityError, SQLAlchemyError
 
 from service.db import schema
+from service.db.tx import write_transaction
 from service.errors import ServiceError
 
 #: The calibration id of a result computed with the rig model logged in the raw log itself.
@@ -43,6 +48,26 @@ calibrations = schema.reprocess_calibrations
 
 class VersionStoreError(ServiceError):
     """The result-version store could not be read or written, or was asked for something missing."""
+
+
+@dataclass(frozen=True)
+class KnownCalibration:
+    """A calibration found by its id (:meth:`VersionStore.find_calibration`)."""
+
+    id: str
+    calibration: dict[str, Any]
+    """``lrms calibrate --out``'s JSON (a ``CalibrationResult``)."""
+    rig_id: str | None
+    """The rig it belongs to (the service's calibrations; None: any rig, or not known)."""
+    origin: Literal["reprocess", "service"]
+    """Where it is kept: ``reprocess_calibrations`` or the service's ``calibrations`` table."""
+
+
+def _as_dict(value: Any) -> dict[str, Any]:
+    data = json.loads(value) if isinstance(value, str | bytes) else value
+    if not isinstance(data, dict):
+        raise VersionStoreError("a stored calibration is not a JSON object")
+    return data
 
 
 @dataclass(frozen=True)
@@ -72,7 +97,7 @@ class VersionStore:
     def put_calibration(self, calibration: dict[str, Any], source: str = "") -> str:
         """Keep ``calibration`` (idempotent); returns its id."""
         cid = calibration_id(calibration)
-        with self.engine.begin() as conn:
+        with write_transaction(self.engine) as conn:
             if conn.execute(select(calibrations.c.id).where(calibrations.c.id == cid)).first() is None:
                 conn.execute(
                     insert(calibrations).values(
@@ -82,18 +107,40 @@ class VersionStore:
         return cid
 
     def get_calibration(self, ref: str) -> tuple[str, dict[str, Any]]:
-        """The calibration whose id is ``ref`` or starts with it (at least 6 hex digits)."""
+        """The calibration whose id is ``ref`` or starts with it (at least 6 hex digits), of those
+        kept here or of the service's calibration store (:meth:`find_calibration`)."""
+        found = self.find_calibration(ref)
+        return found.id, found.calibration
+
+    def find_calibration(self, ref: str) -> KnownCalibration:
+        """The calibration whose id is ``ref`` or starts with it (at least 6 characters): one kept in
+        ``reprocess_calibrations`` (a file given to ``lrms reprocess`` before), or one of the
+        service's calibration store (the ``calibrations`` table: uploaded by ``POST
+        /api/v1/calibrations`` or ``lrms calibrate --upload``). :class:`VersionStoreError` when no
+        calibration or more than one matches."""
         if len(ref) < 6:
             raise VersionStoreError(f"calibration id {ref!r}: give at least 6 of its hex digits")
+        svc = schema.calibrations
         with self.engine.connect() as conn:
-            rows = conn.execute(
-                select(calibrations.c.id, calibrations.c.calibration).where(calibrations.c.id.startswith(ref))
+            kept = conn.execute(
+                select(calibrations.c.id, calibrations.c.calibration).where(
+                    calibrations.c.id.startswith(ref, autoescape=True)
+                )
             ).all()
-        if not rows:
-            raise VersionStoreError(f"no calibration {ref!r} in the result-version store (and no such file)")
-        if len(rows) > 1:
-            raise VersionStoreError(f"calibration id {ref!r} is ambiguous: {', '.join(r[0] for r in rows)}")
-        return str(rows[0][0]), dict(rows[0][1])
+            stored = conn.execute(
+                select(svc.c.id, svc.c.result, svc.c.rig_id).where(svc.c.id.startswith(ref, autoescape=True))
+            ).all()
+        found = [KnownCalibration(str(r[0]), _as_dict(r[1]), None, "reprocess") for r in kept]
+        found += [KnownCalibration(str(r[0]), _as_dict(r[1]), r[2], "service") for r in stored]
+        if not found:
+            raise VersionStoreError(
+                f"no calibration {ref!r}: not a file, not kept by lrms reprocess,"
+                " not in the service's calibration store"
+            )
+        if len(found) > 1:
+            names = ", ".join(f"{c.id} ({c.origin})" for c in found)
+            raise VersionStoreError(f"calibration id {ref!r} is ambiguous: {names}")
+        return found[0]
 
     # -- versions -------------------------------------------------------------------------
     def done_hashes(
@@ -125,11 +172,20 @@ class VersionStore:
         result: dict[str, Any],
     ) -> int | None:
         """Store a new version; returns its number, or None when these inputs are already stored
-        (another run got there first)."""
+        (another run got there first). A result holding NaN or an infinity is refused
+        (:class:`VersionStoreError`), on SQLite as on PostgreSQL."""
+        try:  # PostgreSQL's JSON refuses NaN and infinity; SQLite would keep them: refuse on both
+            json.dumps(result, allow_nan=False)
+        except ValueError as exc:
+            raise VersionStoreError(
+                f"a result of {measurement_id} is not finite JSON (NaN or infinity): {exc}"
+            ) from None
+        except TypeError as exc:
+            raise VersionStoreError(f"a result of {measurement_id} is not JSON: {exc}") from None
         rv = result_versions.c
         for _ in range(5):  # a concurrent writer may take the next number first
             try:
-                with self.engine.begin() as conn:
+                with write_transaction(self.engine) as conn:
                     same = conn.execute(
                         select(rv.version).where(
                             rv.measurement_id == measurement_id,

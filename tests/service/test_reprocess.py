@@ -144,12 +144,16 @@ def test_local_cluster_refits_the_archive_and_a_rerun_skips_everything(archive: 
 
 
 def _calibration(p: float) -> dict[str, Any]:
+    return _calibration_result(p).to_dict()
+
+
+def _calibration_result(p: float, **terms: float) -> Any:
     from lrms.calibration import CalibrationResult, Identifiability
     from lrms.kinematics import RigModel
 
     n = len(RigModel.NAMES)
     return CalibrationResult(
-        model=RigModel(p=p),
+        model=RigModel(p=p, **terms),
         nominal=RigModel(),
         covariance=np.zeros((n, n)),
         estimated=("p",),
@@ -158,7 +162,7 @@ def _calibration(p: float) -> dict[str, Any]:
         residuals={},
         artefact={},
         created="2026-01-01T00:00:00Z",
-    ).to_dict()
+    )
 
 
 def test_fsspec_archive_and_a_new_calibration_make_new_versions(archive: dict[str, Any], tmp_path: Path) -> None:
@@ -309,3 +313,98 @@ def test_a_recipe_measurement_is_decided_again_with_its_recipe_version(archive: 
         ]
     finally:
         engine.dispose()
+
+
+def test_reprocess_on_a_postgresql_store_with_the_service_calibration_of_a_rig(
+    archive: dict[str, Any], tmp_path: Path, postgres_server: Any
+) -> None:
+    """The result store on the session's PostgreSQL (``[storage] url``), holding the archive's
+    measurements as two rigs stored them: ``--calibration`` names a calibration of the service's
+    calibration store (uploaded for rig press-1) by a prefix of its id; a LocalCluster of 2 workers
+    re-fits press-1's measurements only, with every term of the calibration's rig model (a range
+    scale of 1 % makes every diameter 1 % larger); a second run skips them; ``--rig`` and ``--until`` select."""
+    from dataclasses import replace
+
+    from sqlalchemy import update
+
+    from service.calstore import CalibrationStore
+    from service.db.schema import measurements as M
+    from service.replay import kinematics_of_calibration, replay
+
+    url = postgres_server.new_database()
+    good = archive["good"]
+    ids: dict[str, list[str]] = {}
+    for rig in ("press-1", "press-2"):
+        s = Store(url, rig)
+        try:
+            for m in sorted(good.values(), key=lambda m: m.created_at):
+                n = s.create_measurement(m.request)
+                s.start(n.id)
+                s.set_paths(n.id, raw_path=m.raw_path)
+                s.finish(n.id, m.result)
+                ids.setdefault(rig, []).append(n.id)
+        finally:
+            s.close()
+    old = ids["press-2"][0]
+    s = Store(url, "press-1")
+    try:
+        with s.engine.begin() as conn:  # one of press-2's measurements made in 2020
+            conn.execute(update(M).where(M.c.id == old).values(created_at=rp.parse_since("2020-06-01")))
+        # the rig's calibration: the logged rig model with a range scale of 1 % (k1, not p)
+        model = replace(archive["config"].calibration.rig, k1=0.01)
+        cal = CalibrationStore(s.engine).add(_calibration_result(model.p, k1=model.k1), name="k1", rig_id="press-1")
+    finally:
+        s.close()
+    cfg = tmp_path / "client.toml"
+    cfg.write_text(f'[sim]\n[storage]\ndir = "{tmp_path / "data"}"\nurl = "{url}"\nrig_id = "reprocess-1"\n')
+
+    status, out, err = _cli("--config", str(cfg), "--calibration", cal.id[:8], "--workers", "2", "--json")
+    assert status == 0, err
+    assert out["rig"] == "press-1" and out["calibration_id"] == cal.id  # the calibration's own rig only
+    assert (out["total"], out["done"], out["skipped"], out["failed"]) == (3, 3, 0, [])
+    s = Store(url, "press-1")
+    try:
+        versions = VersionStore(s.engine).versions()
+        assert sorted(v.measurement_id for v in versions) == sorted(ids["press-1"])
+        kin = kinematics_of_calibration(cal.calibration.to_dict())
+        assert kin["range_scale_ppm"] == pytest.approx(1e4) and kin["p_m"] == model.p
+        for v in versions:
+            assert v.calibration_id == cal.id and v.version == 1
+            raw = s.get(v.measurement_id).raw_path
+            assert raw is not None
+            # what the worker computed is the replay with the calibration's whole rig model ...
+            assert v.result["diameter_m"] == pytest.approx(
+                replay(raw, kinematics=kin)["result"]["diameter_m"], abs=1e-9
+            )
+            # ... and the range scale made it 1 % larger than the rig's own result (0.99 % measured)
+            original = s.get(v.measurement_id).result
+            assert original is not None
+            assert v.result["diameter_m"] / original["diameter_m"] - 1.0 == pytest.approx(0.01, rel=0.1)
+            assert s.get(v.measurement_id).result == original  # kept as it was
+    finally:
+        s.close()
+
+    status, again, err = _cli("--config", str(cfg), "--calibration", cal.id, "--workers", "0", "--json")
+    assert status == 0, err
+    assert (again["done"], again["skipped"]) == (0, 3)  # a re-run on PostgreSQL fits nothing
+
+    # --rig and --until: press-2's measurement of 2020 alone, with the logged calibration
+    status, sel, err = _cli(
+        "--config", str(cfg), "--rig", "press-2", "--until", "2021-01-01", "--workers", "0", "--json"
+    )
+    assert status == 0, err
+    assert (sel["total"], sel["done"], sel["rig"], sel["calibration_id"]) == (1, 1, "press-2", LOGGED_CALIBRATION)
+    s = Store(url, "press-1")
+    try:
+        assert [v.measurement_id for v in VersionStore(s.engine).versions(ids["press-2"])] == [old]
+    finally:
+        s.close()
+    # a rig's calibration is not applied to another rig's measurements
+    proc = subprocess.run(
+        [*LRMS, "reprocess", "--config", str(cfg), "--calibration", cal.id, "--rig", "press-2", "--workers", "0"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 1 and "belongs to rig 'press-1', not to --rig 'press-2'" in proc.stderr

@@ -15,13 +15,14 @@ from pathlib import Path
 import pytest
 from alembic.autogenerate import compare_metadata
 from alembic.runtime.migration import MigrationContext
-from sqlalchemy import create_engine, select
+from sqlalchemy import create_engine, func, inspect, select
 
 from service.db import engine as db_engine
-from service.db import migrate
+from service.db import migrate, schema
 from service.db.schema import metadata, store_version
 from service.store import NotFound, Store, StoreError
 from tests.conftest import REPO
+from tests.service.pgserver import PostgresServer
 
 
 def test_lifecycle_and_persistence(db_url: str) -> None:
@@ -322,6 +323,20 @@ def old_store(path: Path, with_raw_truncated: bool = True) -> None:
     db.close()
 
 
+#: The tables the migrations after the old store added (0003 calibrations, 0004 recipes, 0005 result versions).
+NEW_TABLES = [
+    (t.name, t)
+    for t in (
+        schema.calibrations,
+        schema.recipes,
+        schema.recipe_versions,
+        schema.recipe_measurements,
+        schema.result_versions,
+        schema.reprocess_calibrations,
+    )
+]
+
+
 @pytest.mark.parametrize("with_raw_truncated", [True, False], ids=["03908b3", "before-raw_truncated"])
 def test_a_sqlite_file_of_the_old_store_upgrades_in_place(tmp_path: Path, with_raw_truncated: bool) -> None:
     path = tmp_path / "lrms.sqlite"
@@ -345,6 +360,13 @@ def test_a_sqlite_file_of_the_old_store_upgrades_in_place(tmp_path: Path, with_r
     assert sc["s2"].interval_s == 60.0 and not sc["s2"].enabled and sc["s2"].name == ""
     with s.engine.connect() as conn:
         assert compare_metadata(MigrationContext.configure(conn), metadata) == []
+        # every table of the head schema is there; those the file did not have are new and empty
+        assert set(inspect(conn).get_table_names()) == set(metadata.tables) | {"alembic_version"}
+        assert {name: conn.execute(select(func.count()).select_from(t)).scalar_one() for name, t in NEW_TABLES} == {
+            name: 0 for name, _ in NEW_TABLES
+        }
+        assert conn.execute(select(store_version.c.id, store_version.c.n)).all() == [(1, 0)]
+    assert migrate.head() == "0005"  # this test follows the migrations to the newest: extend it with each
     # and it goes on as a store: the queue continues after the old rows, under the rig id
     new = s.create_measurement({"n": 6})
     assert [m.id for m in s.queued()] == ["m5", new.id] and s.get(new.id).rig_id == "press-3"
@@ -375,3 +397,32 @@ def test_lrms_db_upgrade_migrates_the_configured_store(tmp_path: Path) -> None:
     s = Store(path, "press-5")
     assert len(s.list_measurements()) == 5 and {m.rig_id for m in s.list_measurements()} == {"press-5"}
     s.close()
+
+
+def test_lrms_db_upgrade_builds_an_empty_postgresql_database(tmp_path: Path, postgres_server: PostgresServer) -> None:
+    """``lrms db upgrade`` with ``[storage] url`` naming a new, empty PostgreSQL database: every
+    migration runs (0001 to the head), the schema is the declared one, every table is empty; a
+    second run finds it at the head."""
+    url = postgres_server.new_database()
+    cfg = tmp_path / "rig.toml"
+    cfg.write_text(f'[sim]\n[storage]\ndir = "data"\nurl = "{url}"\nrig_id = "press-6"\n')
+    upgrade = [sys.executable, "-m", "service.cli.main", "db", "upgrade", "--config", str(cfg)]
+    proc = subprocess.run(upgrade, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert f"at revision {migrate.head()} (was none)" in proc.stdout and "rig id press-6" in proc.stdout
+    engine = db_engine.create(url)
+    try:
+        assert engine.dialect.name == "postgresql"
+        with engine.connect() as conn:
+            assert compare_metadata(MigrationContext.configure(conn), metadata) == []
+            assert set(inspect(conn).get_table_names()) == set(metadata.tables) | {"alembic_version"}
+            counts = {
+                t.name: conn.execute(select(func.count()).select_from(t)).scalar_one() for t in metadata.sorted_tables
+            }
+            assert counts == {t.name: (1 if t is store_version else 0) for t in metadata.sorted_tables}
+    finally:
+        engine.dispose()
+    again = subprocess.run(upgrade, capture_output=True, text=True, timeout=60)
+    assert again.returncode == 0, again.stderr
+    assert f"at revision {migrate.head()} (was {migrate.head()})" in again.stdout
+    assert not (tmp_path / "data" / "lrms.sqlite").exists()  # the URL, not the folder's SQLite file
