@@ -72,6 +72,10 @@ FLANGE_PATCH = 0.25
 RANSAC_THRESHOLD = 0.015
 #: Points used for the cost of the golden-section searches.
 COST_SAMPLE = 4000
+#: Larger clouds are cut to this many random points for the slice cylinders (steps 1-4): the start
+#: needs a few millimetres, not the full cloud's precision, which the adjustment on all points
+#: brings (the slices' patches, RANSAC and polish then cost a fraction).
+SLICE_SAMPLE = 10_000
 #: The two ends' slice radii may differ by this factor at most (joints without flanges).
 RADIUS_MISMATCH = 1.5
 #: Fewest points for an automatic start.
@@ -300,7 +304,8 @@ def initial_candidates(
     slice_start: ElbowParams | None = None
     if method != "global":
         try:
-            slice_start = _slice_start(pts, sample, degree, ratio, flange, g)
+            base = pts if pts.shape[0] <= SLICE_SAMPLE else pts[g.choice(pts.shape[0], SLICE_SAMPLE, replace=False)]
+            slice_start = _slice_start(base, sample, degree, ratio, flange, g)
         except FitError as exc:
             if method == "slice":
                 raise
@@ -308,8 +313,7 @@ def initial_candidates(
     if slice_start is not None and method == "slice":
         return [slice_start]
     if slice_start is not None:
-        spread = 1.4826 * float(np.median(np.abs(_residuals(sample, slice_start))))
-        if spread < QUIET * slice_start.D:
+        if _robust_spread(sample, slice_start) < QUIET * slice_start.D:
             return [slice_start]
     small = (
         sample if sample.shape[0] <= SEARCH_SAMPLE else sample[g.choice(sample.shape[0], SEARCH_SAMPLE, replace=False)]
@@ -354,6 +358,10 @@ def _slice_start(
         cost = _trimmed_cost(sample, cand) / cand.D**2
         if cost < best_cost:
             best, best_cost, best_corner = cand, cost, corner
+        if best is cand and _robust_spread(sample, cand) < QUIET * cand.D:
+            # the pair fits the points closely already: the pairs that avoid one of its ends
+            # (for something sticking out farther than a pipe end) cannot do better
+            break
     if best is None:
         raise FitError(errors[0] if errors else "no elbow found")
     return _refine_rotation(sample, best, best_corner, ratio, flange)
@@ -361,6 +369,11 @@ def _slice_start(
 
 def _residuals(pts: FloatArray, p: ElbowParams) -> FloatArray:
     return evaluate_model((pts - p.center) @ p.rot.T, p.A, p.D, p.degree, p.Df).f
+
+
+def _robust_spread(pts: FloatArray, p: ElbowParams) -> float:
+    """1.4826 times the median absolute orthogonal distance of ``pts`` to ``p``'s surface."""
+    return 1.4826 * float(np.median(np.abs(_residuals(pts, p))))
 
 
 def _same_start(a: ElbowParams, b: ElbowParams) -> bool:

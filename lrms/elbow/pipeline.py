@@ -138,6 +138,10 @@ def _fit_from(
     """Adjustment, trimming, labelling and the sanity checks of :func:`fit_auto` from one start."""
     cv = None if cov is None else np.asarray(cov, dtype=np.float64)
     keep = np.ones(pts.shape[0], dtype=bool)
+    # label the legs on the start already: the adjustment from the flipped start ends on the
+    # flipped solution (the same surface), so the refit below is needed only when the fit itself
+    # changes which visible leg is the longer
+    start = canonical(pts, start)
     if trim is None:
         fit = fit_elbow(pts, start, ratio=ratio, flange=flange, cov=cv, max_iter=max_iter)
     else:
