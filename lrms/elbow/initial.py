@@ -312,9 +312,8 @@ def initial_candidates(
             errors.append(f"slice cylinders: {exc}")
     if slice_start is not None and method == "slice":
         return [slice_start]
-    if slice_start is not None:
-        if _robust_spread(sample, slice_start) < QUIET * slice_start.D:
-            return [slice_start]
+    if slice_start is not None and _robust_spread(sample, slice_start) < QUIET * slice_start.D:
+        return [slice_start]
     small = (
         sample if sample.shape[0] <= SEARCH_SAMPLE else sample[g.choice(sample.shape[0], SEARCH_SAMPLE, replace=False)]
     )
