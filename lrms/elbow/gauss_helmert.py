@@ -189,9 +189,9 @@ def _curvature_offset(
     k2 = np.where(ev.portion == BEND, dz / np.maximum(rho, 1e-300), 0.0)
     if cov is not None:
         tube = v1 / (2 * ev.radius)
-    elif np.ndim(var) == 0:
+    elif var is None or np.ndim(var) == 0:
         # one variance for all points: the Rice mean of the (at most two) radii, not of every point
-        sg = math.sqrt(max(float(0.0 if var is None else var), 0.0))  # type: ignore[arg-type]
+        sg = math.sqrt(max(float(0.0 if var is None else var), 0.0))
         radii = np.array([params.D / 2, (params.Df if params.Df is not None else params.D) / 2])
         ex = rice_excess(radii, sg)
         tube = np.where(ev.q > 0.5, ex[1], ex[0])  # q: 0 on the tube radius D/2, 1 on Df/2
