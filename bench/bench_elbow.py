@@ -114,7 +114,7 @@ def _worker(tree: Path, joint: str, reps: int) -> dict[str, float]:
     code = (
         "import sys, json\n"
         f"sys.path.insert(0, {str(tree)!r})\n"
-        "ns = {'__name__': 'bench_worker'}\n"
+        f"ns = {{'__name__': 'bench_worker', '__file__': {str(Path(__file__))!r}}}\n"
         f"exec(compile({src!r}, 'bench_elbow', 'exec'), ns)\n"
         f"print(json.dumps(ns['auto_worker']({joint!r}, {reps})))\n"
     )

@@ -101,28 +101,32 @@ def _design(
     m = ev.m
     n = m.shape[0]
     u = len(param_names(ratio, has_flange))
+    x, y, z = m[:, 0], m[:, 1], m[:, 2]
     s = np.maximum(ev.s, 1e-12 * max(params.D, 1e-9))
     dz = (ev.zp - params.A) / s  # d s / d Zp
-    g = np.empty_like(m)  # d f / d m
-    g[:, 0] = dz * np.cos(ev.phi)
-    g[:, 1] = m[:, 1] / s
-    g[:, 2] = dz * np.sin(ev.phi)
-    b = g @ params.rot
-    amat = np.empty((n, u))
-    amat[:, :3] = -b
+    # d f / d m, one contiguous row per component
+    g = np.empty((3, n))
+    np.multiply(dz, np.cos(ev.phi), out=g[0])
+    np.divide(y, s, out=g[1])
+    np.multiply(dz, np.sin(ev.phi), out=g[2])
+    b = (params.rot.T @ g).T  # rows g_i^T R
+    # the design matrix is filled column by column: (u, n) rows, handed out transposed
+    at = np.empty((u, n))
+    np.negative(b.T, out=at[:3])
     # g x m, written out (np.cross is slow on (n, 3) rows)
-    amat[:, 3] = g[:, 1] * m[:, 2] - g[:, 2] * m[:, 1]
-    amat[:, 4] = g[:, 2] * m[:, 0] - g[:, 0] * m[:, 2]
-    amat[:, 5] = g[:, 0] * m[:, 1] - g[:, 1] * m[:, 0]
+    at[3] = g[1] * z - g[2] * y
+    at[4] = g[2] * x - g[0] * z
+    at[5] = g[0] * y - g[1] * x
     if ratio is None:
-        amat[:, 6] = -dz
-        amat[:, 7] = -(1.0 - ev.q) / 2
+        np.negative(dz, out=at[6])
+        at[7] = -(1.0 - ev.q) / 2
         k = 8
     else:
-        amat[:, 6] = -ratio * dz - (1.0 - ev.q) / 2
+        at[6] = -ratio * dz - (1.0 - ev.q) / 2
         k = 7
     if has_flange:
-        amat[:, k] = -ev.q / 2
+        at[k] = -ev.q / 2
+    amat = at.T
     return ev.f, amat, b
 
 

@@ -72,6 +72,9 @@ FLANGE_PATCH = 0.25
 RANSAC_THRESHOLD = 0.015
 #: Points used for the cost of the golden-section searches.
 COST_SAMPLE = 4000
+#: Tolerance (rad) of the golden-section searches on the rotation: 1 mrad turns a 0.1 m leg by
+#: 0.1 mm, far inside what the adjustment starts from (the ``QUIET`` spread is 4 % of D).
+ROTATION_TOL = 1e-3
 #: Larger clouds are cut to this many random points for the slice cylinders (steps 1-4): the start
 #: needs a few millimetres, not the full cloud's precision, which the adjustment on all points
 #: brings (the slices' patches, RANSAC and polish then cost a fraction).
@@ -613,7 +616,7 @@ def _refine_rotation(
             def cost(angle: float, axis: int = axis, base: ElbowParams = p) -> float:
                 return _trimmed_cost(sample, _rotated(base, axis, angle, corner, ratio))
 
-            best = _golden(cost, -0.15, 0.15)
+            best = _golden(cost, -0.15, 0.15, tol=ROTATION_TOL)
             p = _rotated(p, axis, best, corner, ratio)
         p = _sizes_from_pose(sample, p, flange)
         if ratio is not None:
