@@ -3,8 +3,10 @@
 1. **The two connections.** The cloud's two extreme points (the point farthest from the centroid,
    then the point farthest from that one) lie on the rims of the two pipe ends. In case
    something else sticks out farther (a bracket's rod), two more pairs that avoid one of those
-   points are tried as well, and the candidate whose model fits the points best (trimmed mean
-   squared distance) is kept.
+   points are tried as well, unless the first pair's start already fits the points closely
+   (robust spread below ``QUIET``), and the candidate whose model fits the points best (trimmed
+   mean squared distance) is kept. Steps 1-3 work on ``SLICE_SAMPLE`` random points of larger
+   clouds (the adjustment then uses all of them).
 2. **Slice cylinders.** Near each end a slice of points is cut and a cylinder fitted: the axis
    direction from the patch normals (the direction most perpendicular to all of them, normals by
    :func:`lrms.cylinder.estimate_normals`), the axis point and radius from an algebraic circle fit
