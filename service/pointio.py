@@ -79,7 +79,8 @@ def _parse_text_fast(text: str) -> NDArray[np.float64] | None:
         try:
             [float(f) for f in fields[:3]]
         except ValueError:
-            skip = i + 1
+            if len(fields) >= 3:  # a shorter line is an error the line reader reports
+                skip = i + 1
         break
     # looking for comments costs loadtxt a third of its time: only when there can be any
     comments = ("#", "//") if "#" in clean or "//" in clean else None

@@ -85,6 +85,7 @@ def test_fast_text_reader_agrees_with_the_line_reader(tmp_path: Path) -> None:
     np.testing.assert_array_equal(read_points(f), pts)
     # what the fast parse refuses goes to the line reader, which names the line
     assert _parse_text_fast("1 2 3\n4 5\n") is None
+    assert _parse_text_fast("x y\n1 2 3\n") is None  # a header needs three names too
     (tmp_path / "short.xyz").write_text("1 2 3\n4 5\n")
     with pytest.raises(PointFileError, match=r"short.xyz:2: need at least 3 columns"):
         read_points(tmp_path / "short.xyz")
