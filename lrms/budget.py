@@ -35,15 +35,19 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from lrms import kinematics
 from lrms.covariance import NoiseModel
-from lrms.cylinder import CylinderFit, Rays, _Frame, grazing_sigmas, los_jacobian
 from lrms.errors import FitError, LrmsError
+
+if TYPE_CHECKING:
+    # lrms.cylinder (scipy.optimize, tenths of a second) is imported where a fit is at hand: the
+    # rig config reads this module's defaults and must not pay for it (docs/architecture.md)
+    from lrms.cylinder import CylinderFit, Rays
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -276,6 +280,8 @@ def _weights(fit: CylinderFit, rays: Rays) -> FloatArray:
     """The per-beam sigmas the fit was weighted with (grazing weights when it carries them)."""
     lat = fit.extra.get("grazing_sigma_m", 0.0)
     if lat > 0:
+        from lrms.cylinder import grazing_sigmas
+
         return grazing_sigmas(fit.cylinder, rays, lat)
     return np.asarray(np.broadcast_to(rays.sigma_l, rays.ranges.shape), dtype=np.float64)
 
@@ -283,6 +289,8 @@ def _weights(fit: CylinderFit, rays: Rays) -> FloatArray:
 def _gain_rows(fit: CylinderFit, rays: Rays) -> tuple[FloatArray, FloatArray, FloatArray]:
     """``d(diameter) / d(r_k)`` for the fit's whitened residual rows (range rows, miss rows) and the
     range rows' sigmas, from the normal equations: ``dtheta = -(J^T J)^-1 J^T dr``."""
+    from lrms.cylinder import _Frame, los_jacobian
+
     if not fit.line_of_sight:
         raise FitError("range sensitivities are defined for a line-of-sight fit")
     n = fit.inliers.size

@@ -31,6 +31,7 @@ from lrms import budget as _budget
 from lrms.errors import LrmsError
 from lrms.kinematics import RigCalibration
 from service.db import check_rig_id, default_rig_id
+from service.defaults import DEFAULT_K as DEFAULT_K  # re-exported: the config's default k
 from service.errors import ConfigError
 
 TOKEN_ENV = "LRMS_API_TOKEN"
@@ -44,11 +45,6 @@ TOKEN_ENVS: dict[Role, str] = {
 """The environment variable of each role's token (used when the config key is empty)."""
 DEFAULT_MAX_BODY_BYTES = 1 << 20
 DEFAULT_RIG = "default_rig.toml"
-
-
-#: The coverage factor k of seed 003's critical-point interval when a request, the rig's ``[fit]``
-#: table or ``lrms fit --k`` gives none: the k-ellipsoids of every point at k = 3 (seed 003).
-DEFAULT_K = 3.0
 
 
 #: The slowest sweep speed and the smallest step a request or the ``[sweep]`` table may give: below

@@ -24,12 +24,15 @@ from lrms import kinematics
 from lrms.budget import BeamGeometry, CalibrationInput, SensorErrors
 from lrms.covariance import NoiseModel
 from lrms.errors import FitError
-from service.config import DEFAULT_K, RigConfig
-from service.models import MeasurementRequest, resolve_sweep
-from service.sweep import MappedSweep, roi_mask
+from service.defaults import DEFAULT_K
 
 if TYPE_CHECKING:
+    # the rig's config, request and sweep types (pydantic, the MCAP log) are needed only by the
+    # service's own fits: ``lrms fit FILE`` imports this module without them (docs/architecture.md)
     from service.calstore import StoredCalibration
+    from service.config import RigConfig
+    from service.models import MeasurementRequest
+    from service.sweep import MappedSweep
 
 FloatArray = NDArray[np.float64]
 #: A calibration's budget row, built once the fit is known: ``(fit, inlier rays) -> row``.
@@ -55,6 +58,8 @@ def _roi(request: MeasurementRequest, config: RigConfig) -> tuple[Any, Any]:
 
 def select(mapped: MappedSweep, request: MeasurementRequest, config: RigConfig) -> NDArray[np.bool_]:
     lo, hi = _roi(request, config)
+    from service.sweep import roi_mask
+
     return roi_mask(mapped.points, lo, hi)
 
 
@@ -119,7 +124,7 @@ def cylinder_result(
     the beams meet the cylinder; ``None``: the orthogonal fit with isotropic ellipsoids of
     ``isotropic_sigma`` (``None``: the fit's rms residual) on the inliers projected onto the
     surface. ``k``: coverage factor of the critical-point interval (``None``:
-    :data:`service.config.DEFAULT_K`). ``monte_carlo``: Monte Carlo refits (0: none).
+    :data:`service.defaults.DEFAULT_K`). ``monte_carlo``: Monte Carlo refits (0: none).
     ``world_from_rig`` (4 x 4): positions and directions of the result in that frame; the axis
     direction's sign is canonical (largest component positive). ``errors``: the budget's type-B
     inputs (default :class:`lrms.budget.SensorErrors`: an uncalibrated LMS1xx); ``beams``: every
@@ -299,6 +304,8 @@ def fit_cylinder_result(
     l = mapped.ranges[keep]
     alpha = mapped.alpha[keep]
     beta = mapped.beta[keep]
+    from service.models import resolve_sweep
+
     sweep = resolve_sweep(request.sweep, config)
     speed = 0.0 if sweep.mode == "step" else float(np.deg2rad(sweep.speed_deg_s))  # step-and-scan: at rest
     # every beam by the rig model the cloud was mapped with (RigModel: tilts, zeros, k0, k1, backlash, ...),

@@ -5,6 +5,7 @@ from __future__ import annotations
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -95,6 +96,33 @@ def test_cli_start_imports_no_numerics_or_simulator() -> None:
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=REPO, check=True)
     assert "Laser radar measurement system" in out.stdout
     assert out.stdout.rstrip().endswith("HEAVY:"), out.stdout[-300:]
+
+
+def test_fit_of_a_file_imports_no_web_stack_config_or_plots(tmp_path: Path) -> None:
+    """``lrms fit FILE`` reads and fits a cloud without pydantic, the rig config, the sweep/MCAP
+    log, the web stack or matplotlib (bench/bench_cli_start.py: each costs the start tenths of a
+    second); the probe runs the command itself on a small cylinder."""
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    t = rng.uniform(-1.0, 1.0, 400)
+    pts = np.column_stack([2.5 - 0.138 * np.cos(t), 0.138 * np.sin(t), rng.uniform(-0.2, 0.2, 400)])
+    cloud = tmp_path / "c.csv"
+    cloud.write_text("x,y,z\n" + "\n".join(f"{a:.6f},{b:.6f},{c:.6f}" for a, b, c in pts))
+    probe = (
+        "import sys, io, contextlib, json\n"
+        "from service.cli import main\n"
+        "buf = io.StringIO()\n"
+        "with contextlib.redirect_stdout(buf):\n"
+        f"    status = main.main(['fit', {str(cloud)!r}, '--no-line-of-sight', '--json'])\n"
+        "heavy = ('pydantic', 'service.config', 'service.sweep', 'mcap', 'fastapi', 'matplotlib', 'sqlalchemy')\n"
+        "print(status, round(json.loads(buf.getvalue())['diameter_m'], 3))\n"
+        "print('HEAVY:', ' '.join(m for m in heavy if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=REPO, check=True)
+    lines = out.stdout.strip().splitlines()
+    assert lines[-2] == "0 0.276", out.stdout[-300:]
+    assert lines[-1] == "HEAVY:", out.stdout[-300:]
 
 
 def test_drivers_and_lrms_never_import_sim_or_service() -> None:

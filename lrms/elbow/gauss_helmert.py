@@ -45,7 +45,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 from scipy.special import i0e, i1e
 
-from lrms.elbow.model import BEND, ElbowParams, as_points, euler_jacobian, evaluate_model
+from lrms.elbow.model import BEND, ElbowParams, Evaluation, as_points, euler_jacobian, evaluate_model
 from lrms.errors import FitError
 
 FloatArray = NDArray[np.float64]
@@ -89,25 +89,45 @@ def design_matrices(
     has_flange = params.Df is not None if flange is None else flange
     if has_flange and params.Df is None:
         raise FitError("a flanged fit needs an initial flange diameter Df")
-    rot = params.rot
-    m = (pts - params.center) @ rot.T
+    m = (pts - params.center) @ params.rot.T
     ev = evaluate_model(m, params.A, params.D, params.degree, params.Df if has_flange else None)
+    return _design(ev, params, ratio, has_flange)
+
+
+def _design(
+    ev: Evaluation, params: ElbowParams, ratio: float | None, has_flange: bool
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """:func:`design_matrices` from the model evaluated at the points (``ev``)."""
+    m = ev.m
+    n = m.shape[0]
+    u = len(param_names(ratio, has_flange))
+    x, y, z = m[:, 0], m[:, 1], m[:, 2]
     s = np.maximum(ev.s, 1e-12 * max(params.D, 1e-9))
     dz = (ev.zp - params.A) / s  # d s / d Zp
-    g = np.empty_like(m)  # d f / d m
-    g[:, 0] = dz * np.cos(ev.phi)
-    g[:, 1] = m[:, 1] / s
-    g[:, 2] = dz * np.sin(ev.phi)
-    b = g @ rot
-    cols = [-b, np.cross(g, m)]
+    # d f / d m, one contiguous row per component
+    g = np.empty((3, n))
+    np.multiply(dz, np.cos(ev.phi), out=g[0])
+    np.divide(y, s, out=g[1])
+    np.multiply(dz, np.sin(ev.phi), out=g[2])
+    b = (params.rot.T @ g).T  # rows g_i^T R
+    # the design matrix is filled column by column: (u, n) rows, handed out transposed
+    at = np.empty((u, n))
+    np.negative(b.T, out=at[:3])
+    # g x m, written out (np.cross is slow on (n, 3) rows)
+    at[3] = g[1] * z - g[2] * y
+    at[4] = g[2] * x - g[0] * z
+    at[5] = g[0] * y - g[1] * x
     if ratio is None:
-        cols.append(-dz[:, None])
-        cols.append(-(1.0 - ev.q)[:, None] / 2)
+        np.negative(dz, out=at[6])
+        at[7] = -(1.0 - ev.q) / 2
+        k = 8
     else:
-        cols.append((-ratio * dz - (1.0 - ev.q) / 2)[:, None])
+        at[6] = -ratio * dz - (1.0 - ev.q) / 2
+        k = 7
     if has_flange:
-        cols.append(-ev.q[:, None] / 2)
-    return ev.f, np.hstack(cols), b
+        at[k] = -ev.q / 2
+    amat = at.T
+    return ev.f, amat, b
 
 
 def rice_excess(radius: FloatArray | float, sigma: FloatArray | float) -> FloatArray:
@@ -148,11 +168,18 @@ def curvature_offset(
     """
     pts = as_points(points)
     m = (pts - params.center) @ params.rot.T
-    ev = evaluate_model(m, params.A, params.D, params.degree, params.Df)
+    return _curvature_offset(evaluate_model(m, params.A, params.D, params.degree, params.Df), params, var, cov)
+
+
+def _curvature_offset(
+    ev: Evaluation, params: ElbowParams, var: FloatArray | float | None = None, cov: FloatArray | None = None
+) -> FloatArray:
+    """:func:`curvature_offset` from the model evaluated at the points (``ev``)."""
+    m = ev.m
     s = np.maximum(ev.s, 1e-300)
     dz = (ev.zp - params.A) / s
-    t2 = np.stack([-np.sin(ev.phi), np.zeros_like(ev.phi), np.cos(ev.phi)], axis=1)
     if cov is not None:
+        t2 = np.stack([-np.sin(ev.phi), np.zeros_like(ev.phi), np.cos(ev.phi)], axis=1)
         g = np.stack([dz * np.cos(ev.phi), m[:, 1] / s, dz * np.sin(ev.phi)], axis=1)
         t1 = np.cross(g, t2)
         t1w, t2w = t1 @ params.rot, t2 @ params.rot
@@ -164,7 +191,16 @@ def curvature_offset(
     sd = np.sqrt(np.maximum(v2, 0.0))
     rho = np.maximum(params.A + ev.radius * dz, 2.0 * sd)
     k2 = np.where(ev.portion == BEND, dz / np.maximum(rho, 1e-300), 0.0)
-    tube = v1 / (2 * ev.radius) if cov is not None else rice_excess(ev.radius, np.sqrt(np.maximum(v1, 0.0)))
+    if cov is not None:
+        tube = v1 / (2 * ev.radius)
+    elif var is None or np.ndim(var) == 0:
+        # one variance for all points: the Rice mean of the (at most two) radii, not of every point
+        sg = math.sqrt(max(float(0.0 if var is None else var), 0.0))
+        radii = np.array([params.D / 2, (params.Df if params.Df is not None else params.D) / 2])
+        ex = rice_excess(radii, sg)
+        tube = np.where(ev.q > 0.5, ex[1], ex[0])  # q: 0 on the tube radius D/2, 1 on Df/2
+    else:
+        tube = rice_excess(ev.radius, np.sqrt(np.maximum(v1, 0.0)))
     return np.asarray(tube + 0.5 * k2 * v2)
 
 
@@ -373,36 +409,38 @@ def fit_elbow(
     hub_scale = math.inf
     stalled = False
     sig_r = 0.0
-    f_cache: FloatArray | None = None  # f at the observations for the current parameters
-    f_trial = np.zeros(n)
+    # the model at the observations for the current parameters (shared by the misclosures, the
+    # curvature correction and the axis gate; the accepted trial step's evaluation is reused)
+    ev_obs = _eval_obs(pts, params)
+    ev_trial = ev_obs
     corr: FloatArray | float = 0.0  # expected orthogonal distance of the noisy points (curvature_correction)
     var_hat: float | None = None
     for it in range(1, max_iter + 1):
-        f0, amat, b = design_matrices(l0, params, ratio, has_flange)
+        f_cache = ev_obs.f
+        if l0 is pts:
+            f0, amat, b = _design(ev_obs, params, ratio, has_flange)
+        else:
+            f0, amat, b = design_matrices(l0, params, ratio, has_flange)
         if curvature_correction:
-            if f_cache is None:
-                f_cache = f0 if l0 is pts else _f_obs(pts, params)
             if q is None:
                 if var_hat is None or robust:
                     sd_f = 1.4826 * float(np.median(np.abs(f_cache - corr)))
                 else:
                     sd_f = math.sqrt(var_hat)
                 var_hat = noise_from_residual_sd(sd_f, params.D / 2) ** 2
-                corr = curvature_offset(pts, params, var_hat)
+                corr = _curvature_offset(ev_obs, params, var_hat)
             else:
-                corr = curvature_offset(pts, params, q if q.ndim == 1 else None, q if q.ndim == 3 else None)
+                corr = _curvature_offset(ev_obs, params, q if q.ndim == 1 else None, q if q.ndim == 3 else None)
         w = f0 + np.einsum("ij,ij->i", b, pts - l0) - corr
         mm = _weights_denominator(b, q)
         if np.any(mm <= 0) or not np.all(np.isfinite(mm)):
             raise FitError("degenerate linearization (zero gradient of the condition)")
         sqm = np.sqrt(mm)
-        if f_cache is None:
-            f_cache = f0 if l0 is pts else _f_obs(pts, params)
         fo = f_cache - corr
         z = np.abs(fo) / sqm
         if robust or it == 1:  # the set of points used is frozen once the least-squares phase starts
             sig_r = 1.4826 * float(np.median(z))
-            use = _usable(pts, params, sig_r * np.sqrt(np.median(mm)), axis_gate, gate_legs)
+            use = _usable(pts, params, sig_r * np.sqrt(np.median(mm)), axis_gate, gate_legs, ev_obs)
         if np.count_nonzero(use) < max(MIN_POINTS, 3 * u):
             raise FitError("too few points away from the torus axis for an elbow fit")
         hub = math.inf
@@ -430,8 +468,8 @@ def fit_elbow(
         for _ in range(13):
             trial = apply_update(params, step * delta, ratio, has_flange)
             if _valid(trial):
-                f_trial = _f_obs(pts, trial)
-                if _cost(((f_trial - corr) / sqm)[use], hub) <= cost0 * (1 + 1e-9) + floor:
+                ev_trial = _eval_obs(pts, trial)
+                if _cost(((ev_trial.f - corr) / sqm)[use], hub) <= cost0 * (1 + 1e-9) + floor:
                     break
             step *= 0.5
             rigorous = False
@@ -452,7 +490,7 @@ def fit_elbow(
             stalled = True
             break
         params = trial
-        f_cache = f_trial
+        ev_obs = ev_trial
         kk = np.where(use, -(1.0 / mm) * (amat @ (step * delta) + w), 0.0)
         v = kk[:, None] * _qbt(b, q)
         vpv = float(np.sum(kk * kk * mm))
@@ -491,7 +529,7 @@ def fit_elbow(
             f"D = {params.D * 1e3:.1f} mm (the torus would cut itself); the points do not determine an elbow"
         )
     # final residuals and statistics at the solution (points used in the last iteration)
-    f_fin, amat, b = design_matrices(pts, params, ratio, has_flange)
+    f_fin, amat, b = _design(ev_obs if solver == "gauss-helmert" else _eval_obs(pts, params), params, ratio, has_flange)
     mm = _weights_denominator(b, q)
     normal = amat[use].T @ (amat[use] / mm[use, None])
     n_use = int(np.count_nonzero(use))
@@ -518,18 +556,21 @@ def fit_elbow(
     return replace(fit, sigmas=derived_sigmas(fit))
 
 
-def _usable(pts: FloatArray, p: ElbowParams, sigma: float, gate: float, legs: bool = False) -> NDArray[np.bool_]:
+def _usable(
+    pts: FloatArray, p: ElbowParams, sigma: float, gate: float, legs: bool = False, ev: Evaluation | None = None
+) -> NDArray[np.bool_]:
     """Points used: all but bend points (``legs``: all points) whose foot point lies within the axis gate.
 
     The gate radius is ``min(gate sigma, AXIS_GATE_MAX D/2)``; the foot point's distance from the
     torus axis is ``A + (D/2) cos(phi)`` (``phi`` around the tube), which noise along the surface
     normal does not change, so the selection does not favour one sign of the noise. All points
-    when ``gate`` is 0.
+    when ``gate`` is 0. ``ev``: the model already evaluated at ``pts`` for ``p``.
     """
     if gate <= 0:
         return np.ones(pts.shape[0], dtype=bool)
-    m = (pts - p.center) @ p.rot.T
-    ev = evaluate_model(m, p.A, p.D, p.degree, p.Df)
+    if ev is None:
+        ev = evaluate_model((pts - p.center) @ p.rot.T, p.A, p.D, p.degree, p.Df)
+    m = ev.m
     radius = min(gate * sigma, AXIS_GATE_MAX * p.D / 2)
     foot = p.A + (p.D / 2) * (ev.zp - p.A) / np.maximum(ev.s, 1e-300)
     if legs:
@@ -583,7 +624,11 @@ def _trust_region_polish(
 
 
 def _f_obs(pts: FloatArray, p: ElbowParams) -> FloatArray:
-    return evaluate_model((pts - p.center) @ p.rot.T, p.A, p.D, p.degree, p.Df).f
+    return _eval_obs(pts, p).f
+
+
+def _eval_obs(pts: FloatArray, p: ElbowParams) -> Evaluation:
+    return evaluate_model((pts - p.center) @ p.rot.T, p.A, p.D, p.degree, p.Df)
 
 
 def _cost(z: FloatArray, hub: float) -> float:

@@ -3,8 +3,10 @@
 1. **The two connections.** The cloud's two extreme points (the point farthest from the centroid,
    then the point farthest from that one) lie on the rims of the two pipe ends. In case
    something else sticks out farther (a bracket's rod), two more pairs that avoid one of those
-   points are tried as well, and the candidate whose model fits the points best (trimmed mean
-   squared distance) is kept.
+   points are tried as well, unless the first pair's start already fits the points closely
+   (robust spread below ``QUIET``), and the candidate whose model fits the points best (trimmed
+   mean squared distance) is kept. Steps 1-3 work on ``SLICE_SAMPLE`` random points of larger
+   clouds (the adjustment then uses all of them).
 2. **Slice cylinders.** Near each end a slice of points is cut and a cylinder fitted: the axis
    direction from the patch normals (the direction most perpendicular to all of them, normals by
    :func:`lrms.cylinder.estimate_normals`), the axis point and radius from an algebraic circle fit
@@ -72,6 +74,13 @@ FLANGE_PATCH = 0.25
 RANSAC_THRESHOLD = 0.015
 #: Points used for the cost of the golden-section searches.
 COST_SAMPLE = 4000
+#: Tolerance (rad) of the golden-section searches on the rotation: 1 mrad turns a 0.1 m leg by
+#: 0.1 mm, far inside what the adjustment starts from (the ``QUIET`` spread is 4 % of D).
+ROTATION_TOL = 1e-3
+#: Larger clouds are cut to this many random points for the slice cylinders (steps 1-4): the start
+#: needs a few millimetres, not the full cloud's precision, which the adjustment on all points
+#: brings (the slices' patches, RANSAC and polish then cost a fraction).
+SLICE_SAMPLE = 10_000
 #: The two ends' slice radii may differ by this factor at most (joints without flanges).
 RADIUS_MISMATCH = 1.5
 #: Fewest points for an automatic start.
@@ -300,17 +309,16 @@ def initial_candidates(
     slice_start: ElbowParams | None = None
     if method != "global":
         try:
-            slice_start = _slice_start(pts, sample, degree, ratio, flange, g)
+            base = pts if pts.shape[0] <= SLICE_SAMPLE else pts[g.choice(pts.shape[0], SLICE_SAMPLE, replace=False)]
+            slice_start = _slice_start(base, sample, degree, ratio, flange, g)
         except FitError as exc:
             if method == "slice":
                 raise
             errors.append(f"slice cylinders: {exc}")
     if slice_start is not None and method == "slice":
         return [slice_start]
-    if slice_start is not None:
-        spread = 1.4826 * float(np.median(np.abs(_residuals(sample, slice_start))))
-        if spread < QUIET * slice_start.D:
-            return [slice_start]
+    if slice_start is not None and _robust_spread(sample, slice_start) < QUIET * slice_start.D:
+        return [slice_start]
     small = (
         sample if sample.shape[0] <= SEARCH_SAMPLE else sample[g.choice(sample.shape[0], SEARCH_SAMPLE, replace=False)]
     )
@@ -354,6 +362,10 @@ def _slice_start(
         cost = _trimmed_cost(sample, cand) / cand.D**2
         if cost < best_cost:
             best, best_cost, best_corner = cand, cost, corner
+        if best is cand and _robust_spread(sample, cand) < QUIET * cand.D:
+            # the pair fits the points closely already: the pairs that avoid one of its ends
+            # (for something sticking out farther than a pipe end) cannot do better
+            break
     if best is None:
         raise FitError(errors[0] if errors else "no elbow found")
     return _refine_rotation(sample, best, best_corner, ratio, flange)
@@ -361,6 +373,11 @@ def _slice_start(
 
 def _residuals(pts: FloatArray, p: ElbowParams) -> FloatArray:
     return evaluate_model((pts - p.center) @ p.rot.T, p.A, p.D, p.degree, p.Df).f
+
+
+def _robust_spread(pts: FloatArray, p: ElbowParams) -> float:
+    """1.4826 times the median absolute orthogonal distance of ``pts`` to ``p``'s surface."""
+    return 1.4826 * float(np.median(np.abs(_residuals(pts, p))))
 
 
 def _same_start(a: ElbowParams, b: ElbowParams) -> bool:
@@ -601,7 +618,7 @@ def _refine_rotation(
             def cost(angle: float, axis: int = axis, base: ElbowParams = p) -> float:
                 return _trimmed_cost(sample, _rotated(base, axis, angle, corner, ratio))
 
-            best = _golden(cost, -0.15, 0.15)
+            best = _golden(cost, -0.15, 0.15, tol=ROTATION_TOL)
             p = _rotated(p, axis, best, corner, ratio)
         p = _sizes_from_pose(sample, p, flange)
         if ratio is not None:

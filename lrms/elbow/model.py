@@ -232,38 +232,49 @@ def evaluate_model(m: FloatArray, A: float, D: float, degree: float, Df: float |
     """Evaluate the adapted model (Eq. 5-9) at model-frame points ``m`` (vectorized)."""
     if not 0.0 < degree <= math.pi:
         raise LrmsError(f"joint degree must be in (0, 180] deg, got {math.degrees(degree):.3f}")
-    x, y, z = m[:, 0], m[:, 1], m[:, 2]
+    # contiguous columns: every elementwise pass below is then a plain sweep
+    x, y, z = (np.ascontiguousarray(m[:, i]) for i in range(3))
     theta0 = math.pi / 2 + degree
     c0, s0 = math.cos(theta0), math.sin(theta0)
     on_start = x > 0.0
-    on_end = -x * s0 + z * c0 > 0.0
+    on_end = z * c0 - x * s0 > 0.0
     r_leg = D / 2 if Df is None else Df / 2
-    q_leg = 0.0 if Df is None else 1.0
-
-    zp_start = z
     zp_end = x * c0 + z * s0
-    s_start = np.hypot(zp_start - A, y)
-    s_end = np.hypot(zp_end - A, y)
-    both = on_start & on_end
-    pick_start = on_start & ~(both & (np.abs(s_end - r_leg) < np.abs(s_start - r_leg)))
+
+    # points on both sides of the bend (behind it) take the portion whose surface is nearer
+    pick_start = on_start.copy()
+    both = np.flatnonzero(on_start & on_end)
+    if both.size:
+        yb = y[both]
+        s_start = np.hypot(z[both] - A, yb)
+        s_end = np.hypot(zp_end[both] - A, yb)
+        pick_start[both[np.abs(s_end - r_leg) < np.abs(s_start - r_leg)]] = False
     pick_end = on_end & ~pick_start
     bend = ~(pick_start | pick_end)
+    bi = np.flatnonzero(bend)
 
     portion = np.full(x.shape, BEND, dtype=np.int64)
     portion[pick_start] = START
     portion[pick_end] = END
-    theta = np.arctan2(z, x)
+    xb, zb = x[bi], z[bi]
+    theta = np.arctan2(zb, xb)
     theta = np.where(theta < -math.pi / 2, theta + 2 * math.pi, theta)  # (-90, 270] deg
-    phi = np.where(pick_start, math.pi / 2, np.where(pick_end, theta0, np.clip(theta, math.pi / 2, theta0)))
-    zp = np.where(pick_start, zp_start, np.where(pick_end, zp_end, np.hypot(x, z)))
-    q = np.where(bend, 0.0, q_leg)
+    phi = np.full(x.shape, math.pi / 2)
+    phi[pick_end] = theta0
+    phi[bi] = np.clip(theta, math.pi / 2, theta0)
+    zp = np.where(pick_end, zp_end, z)
+    zp[bi] = np.hypot(xb, zb)
     s = np.hypot(zp - A, y)
-    if Df is not None:
+    if Df is None:
+        q = np.zeros(x.shape)
+        radius = np.full(x.shape, D / 2)
+    else:
+        q = (~bend).astype(np.float64)
         # near the bounding planes the flange index goes by the nearer of the two radii
         margin = FLANGE_MARGIN * D
-        near = (np.abs(x) < margin) | (np.abs(-x * s0 + z * c0) < margin)
+        near = (np.abs(x) < margin) | (np.abs(z * c0 - x * s0) < margin)
         q = np.where(near, (np.abs(s - Df / 2) < np.abs(s - D / 2)).astype(np.float64), q)
-    radius = (1.0 - q) * D / 2 + q * (D / 2 if Df is None else Df / 2)
+        radius = (1.0 - q) * D / 2 + q * (Df / 2)
     return Evaluation(m, portion, phi, zp, radius, q, s, s - radius)
 
 

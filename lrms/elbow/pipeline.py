@@ -11,7 +11,7 @@ from numpy.typing import ArrayLike, NDArray
 from lrms.cylinder import Cylinder, refine_cylinder
 from lrms.elbow.gauss_helmert import ElbowFit, fit_elbow
 from lrms.elbow.initial import initial_candidates
-from lrms.elbow.model import BEND, END, START, ElbowParams, as_points, evaluate_model
+from lrms.elbow.model import BEND, END, START, ElbowParams, Evaluation, as_points, evaluate_model
 from lrms.errors import FitError
 
 FloatArray = NDArray[np.float64]
@@ -29,10 +29,13 @@ TRIM_ROUNDS = 8
 LEG_MARGIN = 1.05
 
 
-def leg_extents(points: ArrayLike, params: ElbowParams) -> tuple[float, float, int]:
-    """How far the points reach along the start and end legs (m) and how many lie on the bend."""
-    m = params.to_model(points)
-    ev = evaluate_model(m, params.A, params.D, params.degree, params.Df)
+def leg_extents(points: ArrayLike, params: ElbowParams, ev: Evaluation | None = None) -> tuple[float, float, int]:
+    """How far the points reach along the start and end legs (m) and how many lie on the bend.
+
+    ``ev``: the model already evaluated at ``points`` for ``params``."""
+    if ev is None:
+        ev = evaluate_model(params.to_model(points), params.A, params.D, params.degree, params.Df)
+    m = ev.m
     theta0 = math.pi / 2 + params.degree
     start = m[ev.portion == START, 0]
     end_dir = np.array([-math.sin(theta0), 0.0, math.cos(theta0)])
@@ -44,9 +47,10 @@ def leg_extents(points: ArrayLike, params: ElbowParams) -> tuple[float, float, i
     )
 
 
-def bend_span(points: ArrayLike, params: ElbowParams) -> float:
+def bend_span(points: ArrayLike, params: ElbowParams, ev: Evaluation | None = None) -> float:
     """Angle (rad) along the bend covered by the points on it: the 2 %-98 % range of their Phi."""
-    ev = evaluate_model(params.to_model(points), params.A, params.D, params.degree, params.Df)
+    if ev is None:
+        ev = evaluate_model(params.to_model(points), params.A, params.D, params.degree, params.Df)
     phi = ev.phi[ev.portion == BEND]
     if phi.size < 10:
         return 0.0
@@ -54,13 +58,14 @@ def bend_span(points: ArrayLike, params: ElbowParams) -> float:
     return float(hi - lo)
 
 
-def canonical(points: ArrayLike, params: ElbowParams) -> ElbowParams:
+def canonical(points: ArrayLike, params: ElbowParams, ev: Evaluation | None = None) -> ElbowParams:
     """The labelling of the two legs with the longer visible leg as the start leg.
 
     The model cannot tell its legs apart (a half turn about the bend's bisector maps it onto
     itself); registration needs both clouds labelled alike, so we label by visible leg length.
+    ``ev``: the model already evaluated at ``points`` for ``params``.
     """
-    s, e, _ = leg_extents(points, params)
+    s, e, _ = leg_extents(points, params, ev)
     return params.flipped() if e > LEG_MARGIN * s else params
 
 
@@ -138,6 +143,10 @@ def _fit_from(
     """Adjustment, trimming, labelling and the sanity checks of :func:`fit_auto` from one start."""
     cv = None if cov is None else np.asarray(cov, dtype=np.float64)
     keep = np.ones(pts.shape[0], dtype=bool)
+    # label the legs on the start already: the adjustment from the flipped start ends on the
+    # flipped solution (the same surface), so the refit below is needed only when the fit itself
+    # changes which visible leg is the longer
+    start = canonical(pts, start)
     if trim is None:
         fit = fit_elbow(pts, start, ratio=ratio, flange=flange, cov=cv, max_iter=max_iter)
     else:
@@ -162,18 +171,20 @@ def _fit_from(
             # outliers still kept), in units of the point standard deviation when cov is given
             sig = 1.4826 * float(np.median(res[keep]))
     sub = pts[keep]
-    can = canonical(sub, fit.params)
+    ev = _evaluate(sub, fit.params)
+    can = canonical(sub, fit.params, ev)
     if can is not fit.params:
         fit = fit_elbow(sub, can, ratio=ratio, flange=flange, cov=None if cv is None else cv[keep], max_iter=max_iter)
+        ev = _evaluate(sub, fit.params)
     if cv is None and fit.sigma0 > max_spread * fit.params.D:
         raise FitError(
             f"no elbow: residual spread {fit.sigma0 * 1e3:.1f} mm is {fit.sigma0 / fit.params.D:.0%} of "
             f"the fitted diameter {fit.params.D * 1e3:.1f} mm"
         )
-    _, _, nb = leg_extents(sub, fit.params)
+    _, _, nb = leg_extents(sub, fit.params, ev)
     if nb < 10:
         raise FitError("no elbow: hardly any points lie on the bend of the fitted model")
-    span = bend_span(sub, fit.params)
+    span = bend_span(sub, fit.params, ev)
     if span < MIN_BEND_SPAN * fit.params.degree:
         raise FitError(
             f"no elbow: the points cover {math.degrees(span):.1f} deg of the fitted bend's "
@@ -239,4 +250,8 @@ def _refuse_straight_cylinder(pts: FloatArray, fit: ElbowFit, degree_estimated: 
 
 
 def _residuals(pts: FloatArray, p: ElbowParams) -> FloatArray:
-    return evaluate_model(p.to_model(pts), p.A, p.D, p.degree, p.Df).f
+    return _evaluate(pts, p).f
+
+
+def _evaluate(pts: FloatArray, p: ElbowParams) -> Evaluation:
+    return evaluate_model(p.to_model(pts), p.A, p.D, p.degree, p.Df)

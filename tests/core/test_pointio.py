@@ -64,3 +64,44 @@ def test_errors_are_typed_and_clear(tmp_path: Path) -> None:
     PlyData([PlyElement.describe(face, "vertex")]).write(str(tmp_path / "noxyz.ply"))
     with pytest.raises(PointFileError, match="lack x, y, z"):
         read_points(tmp_path / "noxyz.ply")
+
+
+def test_fast_text_reader_agrees_with_the_line_reader(tmp_path: Path) -> None:
+    """The whole-file parse (numpy.loadtxt) and the line-by-line reader give the same points on
+    every text layout the reader accepts: separators mixed, comments anywhere, a header, extra
+    columns, blank lines and CRLF line ends."""
+    from service.pointio import _parse_text_fast, _parse_text_lines
+
+    pts = np.round(np.random.default_rng(3).uniform(-5, 5, (500, 3)), 9)
+    lines = [f"{a:.9f},{b:.9f};{c:.9f} 0.5" for a, b, c in pts]
+    lines[10:10] = ["# a comment", "", "// another"]
+    text = "X;Y;Z;I\r\n" + "\r\n".join(lines) + "\r\n"
+    fast = _parse_text_fast(text)
+    assert fast is not None
+    np.testing.assert_array_equal(fast, _parse_text_lines(tmp_path / "t.csv", text))
+    np.testing.assert_array_equal(fast, pts)
+    f = tmp_path / "t.csv"
+    f.write_text(text)
+    np.testing.assert_array_equal(read_points(f), pts)
+    # what the fast parse refuses goes to the line reader, which names the line
+    assert _parse_text_fast("1 2 3\n4 5\n") is None
+    assert _parse_text_fast("x y\n1 2 3\n") is None  # a header needs three names too
+    (tmp_path / "short.xyz").write_text("1 2 3\n4 5\n")
+    with pytest.raises(PointFileError, match=r"short.xyz:2: need at least 3 columns"):
+        read_points(tmp_path / "short.xyz")
+
+
+def test_ascii_ply_with_faces_after_the_vertices(tmp_path: Path) -> None:
+    """The fast ASCII PLY path reads only the vertex block (a face list may follow); a vertex with a
+    list property is left to plyfile, and both agree with plyfile's own reading."""
+    v = np.array([(*p, 7) for p in PTS], dtype=[("x", "f8"), ("y", "f8"), ("z", "f8"), ("i", "u1")])
+    faces = np.array([([0, 1, 2],)], dtype=[("vertex_indices", "i4", (3,))])
+    f = tmp_path / "mesh.ply"
+    PlyData([PlyElement.describe(v, "vertex"), PlyElement.describe(faces, "face")], text=True).write(str(f))
+    np.testing.assert_allclose(read_points(f), PTS, rtol=1e-12)
+    vl = np.empty(3, dtype=[("x", "f8"), ("y", "f8"), ("z", "f8"), ("n", object)])
+    vl["x"], vl["y"], vl["z"] = PTS.T
+    vl["n"] = [np.array([1, 2], dtype=np.int32)] * 3
+    g = tmp_path / "listy.ply"
+    PlyData([PlyElement.describe(vl, "vertex")], text=True).write(str(g))
+    np.testing.assert_allclose(read_points(g), PTS, rtol=1e-12)
