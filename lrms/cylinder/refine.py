@@ -8,7 +8,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import least_squares
 
 from lrms.cylinder.lm import LosProblem, OrthogonalProblem, levenberg_marquardt
 from lrms.cylinder.lm import covariance as lm_covariance
@@ -221,6 +220,8 @@ Residuals = Callable[[FloatArray], FloatArray]
 
 
 def _solve(fun: Residuals, jac: Residuals, max_nfev: int) -> FloatArray:
+    from scipy.optimize import least_squares  # lazy: only the fallback path needs it
+
     res = least_squares(
         fun,
         np.zeros(5),
