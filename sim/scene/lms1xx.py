@@ -88,7 +88,7 @@ class Footprint:
     divergence_rad: float = LMS1XX_DIVERGENCE
     profile_sigma: float = 0.25
     extent: float = 1.5
-    sub_rays: int = 32
+    sub_rays: int = 128
 
     def __post_init__(self) -> None:
         _check("exit_diameter_m", self.exit_diameter_m, hi=1.0)
