@@ -345,7 +345,8 @@ def _first_jacobian(theta: FloatArray, frame: _Frame, rays: Rays, optics: BeamOp
     ``dT = -(F_j(T0) - target_j - F_0(T0) + target_0) / F'(T0)`` (one evaluation of ``F``), and its
     slope ``dT/dF`` is read at ``T0 + dT`` (one more). Forward differences of the rows follow:
     first order in the step like a plain finite difference, at two ``F`` evaluations per column
-    instead of a Newton solve.
+    instead of a Newton solve. Beams where ``F`` is flat at ``T0`` (``F' < 1`` per metre: a spot that
+    barely meets the part) are re-solved per column, as a plain difference would.
     """
     a, w, r = frame.unpack(theta[:5])
     tau = float(expit(theta[5]))
@@ -353,7 +354,8 @@ def _first_jacobian(theta: FloatArray, frame: _Frame, rays: Rays, optics: BeamOp
     big_t, slope = first_hit_range(g.x0, g.t_ca, g.cos_axis, g.radius, g.s0, g.sd, tau, g.c)
     f0, fp0 = _first_share(big_t, g.x0, g.t_ca, g.cos_axis, g.radius, g.s0, g.sd)
     f0 = f0 - np.minimum(tau, 0.999 * g.c)
-    fp0 = np.maximum(fp0, 1.0)  # the slope's cap of first_hit_range
+    flat = np.flatnonzero(fp0 < 1.0)  # F flat at T (a spot that barely meets the part): re-solved
+    fp0 = np.maximum(fp0, 1.0)
     r0 = _first_rows(g, big_t, slope, tau, rays, optics)
     jac = np.empty((r0.size, theta.size))
     for j in range(theta.size):
@@ -364,6 +366,10 @@ def _first_jacobian(theta: FloatArray, frame: _Frame, rays: Rays, optics: BeamOp
         gj = _geometry(aj, wj, float(rj), rays, optics, 1.0) if j < 5 else g
         fj, _ = _first_share(big_t, gj.x0, gj.t_ca, gj.cos_axis, gj.radius, gj.s0, gj.sd)
         tt = big_t - (fj - np.minimum(tj, 0.999 * gj.c) - f0) / fp0
+        if flat.size:
+            tt[flat], _ = first_hit_range(
+                gj.x0[flat], gj.t_ca[flat], gj.cos_axis[flat], gj.radius, gj.s0, gj.sd, tj, gj.c[flat]
+            )
         sj = slope
         if optics.share_u > 0.0:
             _, fpj = _first_share(tt, gj.x0, gj.t_ca, gj.cos_axis, gj.radius, gj.s0, gj.sd)
