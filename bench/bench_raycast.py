@@ -5,7 +5,8 @@ Run: ``.venv/bin/python bench/bench_raycast.py``. Prints beams/s for one 1081-be
 sensor's noise, and for a sweep of 100 scans cast at once, as multiples of the sensor's rate; the
 LMS1xx footprint model (16 / 32 / 64 / 128 sub-rays per beam) with its slowdown against the thin beam
 measured in the same run;
-then scans/s streamed by the simulated device in fast mode over loopback TCP (CoLa A and B),
+then scans/s streamed by the simulated device in fast mode over loopback TCP (CoLa A and B; with
+the streaming device's "lms1xx" sensor, 32 sub-rays, and with the model's default 128),
 read by a plain-socket client with the codec, as multiples of 25 scans/s.
 """
 
@@ -30,6 +31,7 @@ from sim.scene import (
     cast_beams,
     get_scene,
     lms1xx_device_angles,
+    make_sensor,
 )
 
 SENSOR_BEAMS_PER_S = 1081 * 25.0
@@ -82,9 +84,11 @@ def main() -> None:
             thin = rate
         slower = f"  ({thin / rate:5.1f} x slower than the thin beam)" if "LMS1xx" in name and thin else ""
         print(f"{name:45s} {rate:12,.0f} beams/s = {rate / SENSOR_BEAMS_PER_S:7.1f} x real time{slower}")
-    for cola, sensor_model in (("a", None), ("b", None), ("b", LMS1xxSensor())):
+    # the streaming device's "lms1xx" sensor (make_sensor: STREAM_SUB_RAYS) and the model's default
+    for cola, sensor_model in (("a", None), ("b", None), ("b", make_sensor("lms1xx")), ("b", LMS1xxSensor())):
         rate = _server_rate(cola, scans=400 if sensor_model is None else 60, sensor=sensor_model)
-        name = f"simulated LMS100 server, fast mode, CoLa {cola.upper()}" + (", LMS1xx" if sensor_model else "")
+        tag = f", LMS1xx {sensor_model.footprint.sub_rays}" if isinstance(sensor_model, LMS1xxSensor) else ""
+        name = f"simulated LMS100 server, fast mode, CoLa {cola.upper()}{tag}"
         print(f"{name:45s} {rate:12,.1f} scans/s = {rate / 25:7.1f} x 25 Hz")
 
 

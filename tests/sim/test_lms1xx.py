@@ -228,6 +228,8 @@ def test_ideal_sensor_is_unchanged_and_has_no_second_echo() -> None:
     assert isinstance(make_sensor("ideal", sigma_l=0.02), SensorModel)
     lms = make_sensor("lms1xx", sigma_l=0.02, sigma_alpha=0.0)
     assert isinstance(lms, LMS1xxSensor) and lms.sigma_alpha == 0.0 and lms.sigma_typical == 0.012
+    # the streaming device trades sampling accuracy for speed: fewer sub-rays than the model's default
+    assert lms.footprint.sub_rays == 32 < Footprint().sub_rays
 
 
 def test_room_scene_and_part_in_room() -> None:
