@@ -28,9 +28,10 @@ beam i is modelled as the echo the model cylinder would return:
   model covers by less than ``tau`` adds the residual ``(tau - c) / 0.05``).
 
 :func:`footprint_fit` fits both families from the thin-beam fit's solution and keeps the one of
-lower Akaike criterion (the Gaussian ``-2 log L`` with the log-determinant of the first-hit
-family's widened sigmas, range residuals truncated at the gate, on the same beams for every
-family); the thin-beam model itself competes too (clouds without a footprint). What
+lower Akaike criterion (the Gaussian ``-2 log L`` under the common range noise ``sigma_l``, range
+residuals truncated at the gate, on the same beams for every family: the first-hit family's
+widened sigmas of ``share_u`` weight its fit but are not compared); the thin-beam model itself
+competes too (clouds without a footprint). What
 is not estimated is carried as a budget row, ``fit.extra["edge_model_u_m"]`` (standard
 uncertainty of the diameter): the effective spot size (SICK's figures read as the 1/e^2 diameter
 of a Gaussian: our reading, with a relative standard uncertainty ``spot_scale_u``, propagated by
@@ -83,8 +84,8 @@ class BeamOptics:
     uncertainty of a first-hit beam's share of the spot at the threshold (profile shape, a
     receiver's or the simulator's sampling of the spot), added to the range sigma through
     ``dT / d share`` (0.03, ours): it down-weights the beams at the detection edge, whose first hit
-    sits on the limb's steep range profile; the model choice carries the log-determinant of the
-    widened sigmas. Bad values: :class:`FitError`.
+    sits on the limb's steep range profile; the model choice compares every family under
+    ``sigma_l`` alone. Bad values: :class:`FitError`.
     """
 
     exit_diameter_m: float = LMS1XX_EXIT_DIAMETER
@@ -301,23 +302,12 @@ def _first_rows(
     g: _Geom, big_t: FloatArray, slope: FloatArray, tau: float, rays: Rays, optics: BeamOptics
 ) -> FloatArray:
     """Residual rows of the first-hit family: the ranges whitened by ``hypot(sigma_l, share_u
-    dT/dshare)`` (weights: the fit does not move the sigmas, see :func:`_log_det`), then the coverage
-    penalty."""
+    dT/dshare)``, then the coverage penalty. The widened sigmas are weights: the fit's objective
+    leaves out their log-determinant (with it, a noiseless 10 % first-hit cloud came out +15 mm:
+    the fit moves toward geometries whose edge beams have flat slopes)."""
     sigma = np.hypot(rays.sigma_l, optics.share_u * slope)
     rows = [(rays.ranges - big_t) / sigma, np.maximum(tau - g.c, 0.0) / COVERAGE_SCALE]
     return np.asarray(np.concatenate(rows), dtype=np.float64)
-
-
-def _log_det(theta: FloatArray, frame: _Frame, rays: Rays, optics: BeamOptics, mode: EdgeMode) -> float:
-    """``2 sum log(sigma_i / sigma_l)``: the Gaussian ``-2 log L``'s log-determinant of a family's
-    per-beam sigmas against the range noise (0 unless first hit with ``share_u`` on). It enters the
-    model choice only: put into the fit's objective, a noiseless first-hit cloud is pulled by
-    millimetres toward geometries whose edge beams have flat slopes."""
-    if mode != "first" or optics.share_u == 0.0:
-        return 0.0
-    a, w, r = frame.unpack(theta[:5])
-    _, _, slope = _echo(a, w, float(r), rays, optics, mode, float(expit(theta[5])))
-    return float(np.sum(np.log1p(np.square(optics.share_u * slope / rays.sigma_l))))
 
 
 def _residuals(
@@ -459,6 +449,10 @@ def footprint_fit(
     for mode in modes:
         start = np.zeros(5) if mode == "weighted" else np.array([0, 0, 0, 0, 0, float(logit(0.3))])
         try:
+            if mode == "first" and optics.share_u > 0.0:
+                # from the thin beam's solution, down-weighted edge beams let the fit settle on a
+                # wrong (large) radius with a high threshold: fit unweighted first, then weighted
+                start = _solve(frame, work, replace(optics, share_u=0.0), mode, start).theta
             first = _solve(frame, work, optics, mode, start)
             # drop gross outliers under the footprint model, refit once
             res = _residuals(first.theta, frame, work, optics, mode)[: work.ranges.size]
@@ -472,15 +466,16 @@ def footprint_fit(
             continue
     if not solved:
         raise FitError("the footprint fit failed in every edge family")
-    # the criterion on the same beams for every family: -2 log L (range rows truncated at the
-    # gate, the first hit's coverage and log-determinant rows) + 2 parameters
+    # the criterion: -2 log L under the common range noise sigma_l (the first hit's widened sigmas
+    # are the fit's weights, not part of the compared likelihood), on the same beams for every
+    # family, range rows truncated at the gate, plus the first hit's coverage rows, + 2 parameters
     n_work = work.ranges.size
+    common = replace(optics, share_u=0.0)
     aic = {}
     for s in solved:
-        rows = _residuals(s.theta, frame, work, optics, s.mode)
+        rows = _residuals(s.theta, frame, work, common, s.mode)
         rr = rows[:n_work]
-        cost = float(np.sum(np.minimum(rr * rr, gate * gate)) + np.sum(rows[n_work:] ** 2))
-        aic[s.mode] = cost + _log_det(s.theta, frame, work, optics, s.mode) + 2 * s.n_par
+        aic[s.mode] = float(np.sum(np.minimum(rr * rr, gate * gate)) + np.sum(rows[n_work:] ** 2)) + 2 * s.n_par
     best = min(solved, key=lambda s: aic[s.mode])
     extra = {
         **fit.extra,

@@ -246,9 +246,10 @@ def test_the_first_hit_jacobian_matches_differences_through_the_newton_solve() -
 
 
 def test_an_ideal_cloud_keeps_the_thin_beam_with_share_u_on() -> None:
-    """With share_u on, the first-hit family's down-weighted edge beams would win the model choice on
-    a thin-beam cloud without the log-determinant of its widened sigmas (-5.4 mm measured before):
-    with it, the thin beam wins and the diameter is the thin fit's."""
+    """With share_u on, the first-hit family's down-weighted edge beams won the model choice on a
+    thin-beam cloud when its chi-square under the widened sigmas was compared (-5.4 mm measured
+    before): compared under the common range noise, the thin beam wins and the diameter is the thin
+    fit's."""
     cal = RigCalibration()
     dev = np.deg2rad(np.arange(60.0, 120.0 + 1e-9, 0.25))
     mot = np.deg2rad(np.arange(-20.0, 70.0, 0.8))[:, None]
