@@ -83,16 +83,18 @@ class BeamOptics:
     effective spot size carried into ``edge_model_u_m`` (0.15, ours). ``share_u``: standard
     uncertainty of a first-hit beam's share of the spot at the threshold (profile shape, a
     receiver's or the simulator's sampling of the spot), added to the range sigma through
-    ``dT / d share`` (0.03, ours): it down-weights the beams at the detection edge, whose first hit
-    sits on the limb's steep range profile; the model choice compares every family under
-    ``sigma_l`` alone. Bad values: :class:`FitError`.
+    ``dT / d share``: it down-weights the beams at the detection edge, whose first hit sits on the
+    limb's steep range profile; the model choice compares every family under ``sigma_l`` alone.
+    Default 0 (off): 0.03 removes most of a noiseless cloud's edge bias, but on noisy room clouds
+    the weighted fit lands where the common-noise likelihood loses to the thin beam (10 % / 30 %
+    first hit: 4 / 5 of 6 sweeps failed; docs/cylinder.md, section 7). Bad values: :class:`FitError`.
     """
 
     exit_diameter_m: float = LMS1XX_EXIT_DIAMETER
     divergence_rad: float = LMS1XX_DIVERGENCE
     profile_sigma: float = 0.25
     spot_scale_u: float = 0.15
-    share_u: float = 0.03
+    share_u: float = 0.0
 
     def __post_init__(self) -> None:
         for name, lo, hi in (
