@@ -3,9 +3,10 @@
 Run: ``.venv/bin/python bench/bench_raycast.py``. Prints beams/s for one 1081-beam scan
 (0.25 deg, 25 Hz: 27,025 reported beams/s) against the ``seed003`` scene, with and without the
 sensor's noise, and for a sweep of 100 scans cast at once, as multiples of the sensor's rate; the
-LMS1xx footprint model (16 / 32 / 64 sub-rays per beam) with its slowdown against the thin beam
+LMS1xx footprint model (16 / 32 / 64 / 128 sub-rays per beam) with its slowdown against the thin beam
 measured in the same run;
-then scans/s streamed by the simulated device in fast mode over loopback TCP (CoLa A and B),
+then scans/s streamed by the simulated device in fast mode over loopback TCP (CoLa A and B; with
+the streaming device's "lms1xx" sensor, 32 sub-rays, and with the model's default 128),
 read by a plain-socket client with the codec, as multiples of 25 scans/s.
 """
 
@@ -30,6 +31,7 @@ from sim.scene import (
     cast_beams,
     get_scene,
     lms1xx_device_angles,
+    make_sensor,
 )
 
 SENSOR_BEAMS_PER_S = 1081 * 25.0
@@ -64,13 +66,16 @@ def main() -> None:
     ]
     # The LMS1xx footprint model: every beam is K sub-rays; slowdown against the thin beam in this run.
     room = get_scene("seed003-room")
-    for k in (16, 32, 64):
+    for k in (16, 32, 64, 128):
         lms = LMS1xxSensor(footprint=Footprint(sub_rays=k))
         cases.append(
             (f"seed003, 1 scan, LMS1xx {k} sub-rays", _cast(scene, cal, lms, dev, rng), dev.size),
         )
     cases.append(("seed003-room, 1 scan, thin beam", _cast(room, cal, noisy, dev, rng), dev.size))
-    cases.append(("seed003-room, 1 scan, LMS1xx 32 sub-rays", _cast(room, cal, LMS1xxSensor(), dev, rng), dev.size))
+    k_default = LMS1xxSensor().footprint.sub_rays
+    cases.append(
+        (f"seed003-room, 1 scan, LMS1xx {k_default} sub-rays", _cast(room, cal, LMS1xxSensor(), dev, rng), dev.size)
+    )
     print(f"sensor rate (baseline): {SENSOR_BEAMS_PER_S:,.0f} beams/s (1081 beams x 25 Hz)")
     thin = 0.0
     for name, fn, n in cases:
@@ -79,9 +84,11 @@ def main() -> None:
             thin = rate
         slower = f"  ({thin / rate:5.1f} x slower than the thin beam)" if "LMS1xx" in name and thin else ""
         print(f"{name:45s} {rate:12,.0f} beams/s = {rate / SENSOR_BEAMS_PER_S:7.1f} x real time{slower}")
-    for cola, sensor_model in (("a", None), ("b", None), ("b", LMS1xxSensor())):
+    # the streaming device's "lms1xx" sensor (make_sensor: STREAM_SUB_RAYS) and the model's default
+    for cola, sensor_model in (("a", None), ("b", None), ("b", make_sensor("lms1xx")), ("b", LMS1xxSensor())):
         rate = _server_rate(cola, scans=400 if sensor_model is None else 60, sensor=sensor_model)
-        name = f"simulated LMS100 server, fast mode, CoLa {cola.upper()}" + (", LMS1xx" if sensor_model else "")
+        tag = f", LMS1xx {sensor_model.footprint.sub_rays}" if isinstance(sensor_model, LMS1xxSensor) else ""
+        name = f"simulated LMS100 server, fast mode, CoLa {cola.upper()}{tag}"
         print(f"{name:45s} {rate:12,.1f} scans/s = {rate / 25:7.1f} x 25 Hz")
 
 

@@ -4,7 +4,7 @@ The "before" figures of issue 11: the same fit (``lrms.cylinder.fit_cylinder`` w
 and seed 003's noise model, as ``bench/seed003_reproduction.py`` calls it) on sweeps of
 
 * the ideal thin-beam sensor (``SensorModel``: seed 003's 11.67 mm range noise), and
-* the LMS1xx footprint model (``LMS1xxSensor``: 8 mm + 15 mrad spot, 32 sub-rays, SICK's noise)
+* the LMS1xx footprint model (``LMS1xxSensor``: 8 mm + 15 mrad spot, 128 sub-rays, SICK's noise)
   with the edge behaviour varied: detection thresholds 10 / 30 / 50 % of the full-spot energy,
   energy-weighted ("wtd") vs first-hit ("1st") range,
 
@@ -29,7 +29,8 @@ quadrature. ``--fit both`` prints both fits per case, on the same clouds.
 
 Run: ``.venv/bin/python -m bench.bench_sensor_model [--sweeps 20] [--only seed003|parts] [--clouds roi,room]
 [--fit thin|footprint|both]
-[--edges 0.3:first,...] [--sub-rays 32]``.
+[--edges 0.3:first,...] [--sub-rays 128] [--no-offset] [--parts 0.3:3.5,...]``. With the footprint fit,
+each row also counts the family the model choice picked (1st / wtd / thin).
 """
 
 from __future__ import annotations
@@ -57,10 +58,11 @@ Draw = Callable[[np.random.Generator], tuple[FloatArray, NDArray[np.bool_]]]
 MOTOR = np.deg2rad(np.arange(-20.0, 70.0 + 1e-9, 0.4))
 BEAMS = lms1xx_device_angles(0.25)
 BEAMS = BEAMS[(np.deg2rad(50) <= BEAMS) & (np.deg2rad(130) >= BEAMS)]
-#: The simulated sensor's sub-ray pattern (``--sub-rays``): 32 is the simulator's default; its sampling
-#: of the spot moves a noiseless first-hit fit by about 1 mm (docs/cylinder.md, section 7).
+#: The simulated sensor's sub-ray pattern (``--sub-rays``): the simulator's default 128; 32 moves a
+#: noiseless first-hit fit by about 1 mm (docs/cylinder.md, section 7).
 FOOTPRINT = Footprint()
 EDGE_FAMILY = [(thr, mode) for thr in (0.1, 0.3, 0.5) for mode in ("weighted", "first")]
+OFFSET_ROW = True
 
 
 @dataclass
@@ -113,6 +115,7 @@ class Row:
     gross: int = 0
     points: int = 0
     sweeps: int = 0
+    modes: list[str] = dataclasses.field(default_factory=list)
 
     def text(self) -> str:
         n = len(self.errors)
@@ -124,9 +127,10 @@ class Row:
         se = e.std(ddof=1) / np.sqrt(n) if n > 1 else float("nan")
         sd = e.std(ddof=1) if n > 1 else float("nan")
         cover = np.mean(np.abs(e) <= 2 * u)
+        picked = "".join(f", {m} x{self.modes.count(m)}" for m in ("1st", "wtd", "thin") if m in self.modes)
         return (
             f"{head}: mean error {e.mean():+7.2f} +- {se:5.2f} mm, std {sd:6.2f} mm,"
-            f" u_GUM {u.mean():6.2f} mm, |e| <= 2u {100 * cover:5.1f} %"
+            f" u_GUM {u.mean():6.2f} mm, |e| <= 2u {100 * cover:5.1f} %{picked}"
         )
 
 
@@ -162,6 +166,8 @@ def run_case(g: Geometry, draw: Draw, sweeps: int, cloud: str, seed: int, fits: 
                 row.gross += 1
                 continue
             row.errors.append(err)
+            if "edge_mode_first" in fit.extra:
+                row.modes.append({1.0: "1st", 0.0: "wtd"}.get(fit.extra["edge_mode_first"], "thin"))
             row.u.append(float(np.hypot(gum_interval(fit).std, fit.extra.get("edge_model_u_m", 0.0))))
     return rows
 
@@ -173,7 +179,7 @@ def bench_scene(g: Geometry, sweeps: int, clouds: list[str], family: bool, seed:
     for thr, mode in edges:
         sensor = dataclasses.replace(base, edge_threshold=thr, range_mode=mode)  # type: ignore[arg-type]
         cases.append((f"LMS1xx thr {100 * thr:2.0f} % {'wtd' if mode == 'weighted' else '1st'}", lms_draw(g, sensor)))
-    if family:
+    if family and OFFSET_ROW:
         offset = dataclasses.replace(base, systematics=RangeSystematics(offset_m=0.015))
         cases.append(("LMS1xx thr 30 % wtd, +15 mm offset", lms_draw(g, offset)))
     print(f"\n== {g.name}: D = {1e3 * g.diameter:.1f} mm, {sweeps} sweeps per case")
@@ -194,10 +200,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--fit", choices=("thin", "footprint", "both"), default="thin")
     parser.add_argument("--edges", default=None, help="comma list of THR:MODE (0.3:weighted, 0.1:first) for the family")
-    parser.add_argument("--sub-rays", type=int, default=32, help="sub-rays per beam of the simulated LMS1xx")
+    parser.add_argument("--sub-rays", type=int, default=Footprint().sub_rays, help="sub-rays per beam of the LMS1xx")
+    parser.add_argument("--no-offset", action="store_true", help="leave out the +15 mm range offset row")
+    parser.add_argument("--parts", default=None, help="comma list of D:R (m) for --only parts (default: all six)")
     args = parser.parse_args(argv)
-    global FOOTPRINT
+    global FOOTPRINT, OFFSET_ROW
     FOOTPRINT = Footprint(sub_rays=args.sub_rays)
+    OFFSET_ROW = not args.no_offset
     fits = ["thin", "footprint"] if args.fit == "both" else [args.fit]
     if args.edges:
         EDGE_FAMILY[:] = [(float(e.split(":")[0]), e.split(":")[1]) for e in args.edges.split(",")]
@@ -213,7 +222,10 @@ def main(argv: list[str] | None = None) -> None:
     if args.only in (None, "seed003"):
         scenes.append(("seed003-room (137.5 mm at 2.53 m)", 0.1375, SEED003_AXIS_POINT[1], True))
     if args.only in (None, "parts"):
-        scenes += [(f"room, D {d:.1f} m at {r:.1f} m", d, r, False) for d in (0.3, 1.0) for r in (2.0, 3.5, 5.0)]
+        parts = [(d, r) for d in (0.3, 1.0) for r in (2.0, 3.5, 5.0)]
+        if args.parts:
+            parts = [(float(x.split(":")[0]), float(x.split(":")[1])) for x in args.parts.split(",")]
+        scenes += [(f"room, D {d:.1f} m at {r:.1f} m", d, r, False) for d, r in parts]
     for label, diameter, distance, family in scenes:
         t0 = time.perf_counter()
         g = cast_geometry(label, part_in_room(diameter, distance), diameter, sensor)

@@ -28,7 +28,10 @@ beam i is modelled as the echo the model cylinder would return:
   model covers by less than ``tau`` adds the residual ``(tau - c) / 0.05``).
 
 :func:`footprint_fit` fits both families from the thin-beam fit's solution and keeps the one of
-lower Akaike criterion; the thin-beam model itself competes too (clouds without a footprint). What
+lower Akaike criterion (the Gaussian ``-2 log L`` under the common range noise ``sigma_l``, range
+residuals truncated at the gate, on the same beams for every family: the first-hit family's
+widened sigmas of ``share_u`` weight its fit but are not compared); the thin-beam model itself
+competes too (clouds without a footprint). What
 is not estimated is carried as a budget row, ``fit.extra["edge_model_u_m"]`` (standard
 uncertainty of the diameter): the effective spot size (SICK's figures read as the 1/e^2 diameter
 of a Gaussian: our reading, with a relative standard uncertainty ``spot_scale_u``, propagated by
@@ -78,10 +81,13 @@ class BeamOptics:
     diameter (0.25: the diameter read as the 1/e^2 intensity diameter; SICK does not define the
     spot's edge, so this is our reading). ``spot_scale_u``: relative standard uncertainty of the
     effective spot size carried into ``edge_model_u_m`` (0.15, ours). ``share_u``: standard
-    uncertainty of a first-hit beam's share of the spot at the threshold (profile shape, the
-    simulator's sub-ray sampling), added to the range sigma through ``dT / d share``; default 0
-    (off): with it on, the first-hit family's chi-square is not comparable with the thin beam's in
-    the AIC (no log-determinant term yet) and it wins on ideal clouds. Bad values: :class:`FitError`.
+    uncertainty of a first-hit beam's share of the spot at the threshold (profile shape, a
+    receiver's or the simulator's sampling of the spot), added to the range sigma through
+    ``dT / d share``: it down-weights the beams at the detection edge, whose first hit sits on the
+    limb's steep range profile; the model choice compares every family under ``sigma_l`` alone.
+    Default 0 (off): 0.03 removes most of a noiseless cloud's edge bias, but on noisy room clouds
+    the weighted fit lands where the common-noise likelihood loses to the thin beam (10 % / 30 %
+    first hit: 4 / 5 of 6 sweeps failed; docs/cylinder.md, section 7). Bad values: :class:`FitError`.
     """
 
     exit_diameter_m: float = LMS1XX_EXIT_DIAMETER
@@ -127,6 +133,41 @@ def expected_echo(
     return rng_, c
 
 
+def _geometry(
+    cyl_a: FloatArray, cyl_w: FloatArray, radius: float, rays: Rays, optics: BeamOptics, scale: float
+) -> _Geom:
+    """Per-beam geometry of the spot against the cylinder (see the module notes)."""
+    o, u = rays.origins, rays.dirs
+    w = np.asarray(cyl_w, dtype=np.float64)
+    a = np.asarray(cyl_a, dtype=np.float64)
+    nvec = np.cross(u, w)
+    nn = np.maximum(np.linalg.norm(nvec, axis=1, keepdims=True), 1e-12)
+    nvec = nvec / nn
+    x0 = _dot(o - a, nvec)
+    t_ca, _ = _ray_cylinder(o, u, a, w, np.asarray(1e-9))  # closest approach to the axis
+    s0 = scale * optics.profile_sigma * optics.exit_diameter_m
+    sd = scale * optics.profile_sigma * optics.divergence_rad
+    sig = s0 + sd * np.maximum(t_ca, 0.0)
+    p_lo, p_hi = ndtr((-radius - x0) / sig), ndtr((radius - x0) / sig)
+    c = np.maximum(p_hi - p_lo, 0.0)
+    return _Geom(a, w, float(radius), nvec, x0, t_ca, _dot(u, w), s0, sd, p_lo, c)
+
+
+@dataclass
+class _Geom:
+    a: FloatArray
+    w: FloatArray
+    radius: float
+    nvec: FloatArray
+    x0: FloatArray
+    t_ca: FloatArray
+    cos_axis: FloatArray
+    s0: float
+    sd: float
+    p_lo: FloatArray
+    c: FloatArray
+
+
 def _echo(
     cyl_a: FloatArray,
     cyl_w: FloatArray,
@@ -139,23 +180,10 @@ def _echo(
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """:func:`expected_echo`, and for a first hit the slope ``dT / d share`` of the range in the
     share of the spot at the threshold (0 for the energy-weighted family)."""
-    o, u = rays.origins, rays.dirs
-    w = np.asarray(cyl_w, dtype=np.float64)
-    a = np.asarray(cyl_a, dtype=np.float64)
-    nvec = np.cross(u, w)
-    nn = np.maximum(np.linalg.norm(nvec, axis=1, keepdims=True), 1e-12)
-    nvec = nvec / nn
-    x0 = _dot(o - a, nvec)
-    t_ca, _ = _ray_cylinder(o, u, a, w, np.asarray(1e-9))  # closest approach to the axis
-    s0 = scale * optics.profile_sigma * optics.exit_diameter_m
-    sd = scale * optics.profile_sigma * optics.divergence_rad
-    sig = s0 + sd * np.maximum(t_ca, 0.0)
-    xi_lo = (-radius - x0) / sig
-    xi_hi = (radius - x0) / sig
-    p_lo, p_hi = ndtr(xi_lo), ndtr(xi_hi)
-    c = np.maximum(p_hi - p_lo, 0.0)
+    g = _geometry(cyl_a, cyl_w, radius, rays, optics, scale)
+    o, u, a, w, nvec, x0, s0, sd, p_lo, c = (rays.origins, rays.dirs, g.a, g.w, g.nvec, g.x0, g.s0, g.sd, g.p_lo, g.c)
     if mode == "first":
-        big_t, slope = first_hit_range(x0, t_ca, _dot(u, w), radius, s0, sd, tau, c)
+        big_t, slope = first_hit_range(x0, g.t_ca, g.cos_axis, radius, s0, sd, tau, c)
         return big_t, c, slope
     # nodes in probability over the covered part; a spot that meets nothing keeps nodes at the edge
     width = np.maximum(c, 1e-9)
@@ -207,33 +235,16 @@ def first_hit_range(
     moves ``T`` by millimetres. (The sub-rays' tilt across the beam changes their path length
     by ``t tilt^2 / 2``, about 0.02 mm at one sigma: left out.)
     """
+    target = np.minimum(tau, 0.999 * c)
     p = np.sqrt(np.maximum(1.0 - cos_axis * cos_axis, 1e-12))
     depth = radius / p  # range extent of the part's front along the beam
     ys = (s0 + sd * np.maximum(t_ca, 0.0)) * np.abs(cos_axis) / p
-    target = np.minimum(tau, 0.999 * c)
-    eta = _GH_X[None, :]
-    h = _GH_W[None, :]
-    ax0 = np.abs(x0)[:, None]
-
-    def share(big_t: FloatArray) -> tuple[FloatArray, FloatArray]:
-        tt = big_t[:, None] - eta * ys[:, None]
-        dd = t_ca[:, None] - tt
-        inside = (dd > 0) & (dd < depth[:, None])
-        x2 = np.where(dd <= 0, radius * radius, np.maximum(radius * radius - np.square(p[:, None] * dd), 0.0))
-        xt = np.sqrt(x2)
-        sig = s0 + sd * np.maximum(np.minimum(tt, t_ca[:, None]), 0.0)
-        zp, zm = (xt - ax0) / sig, (-xt - ax0) / sig
-        f = np.sum(h * (ndtr(zp) - ndtr(zm)), axis=1)
-        dxt = np.where(inside, np.square(p[:, None]) * dd / np.maximum(xt, 1e-9 * radius), 0.0)
-        dens = (np.exp(-0.5 * zp * zp) + np.exp(-0.5 * zm * zm)) / (np.sqrt(2 * np.pi) * sig)
-        return f, np.sum(h * dens * dxt, axis=1)
-
     lo = t_ca - depth - 6.0 * ys - 1e-9
     hi = t_ca + 6.0 * ys + 1e-9
     # start: the front's one-sided quantile, well inside the bracket
     big_t = np.clip(t_ca - depth + 0.5 * (1.0 - np.minimum(target / np.maximum(c, 1e-12), 1.0)) * depth, lo, hi)
     for _ in range(60):
-        f, fp = share(big_t)
+        f, fp = _first_share(big_t, x0, t_ca, cos_axis, radius, s0, sd)
         f = f - target
         lo = np.where(f < 0, big_t, lo)
         hi = np.where(f >= 0, big_t, hi)
@@ -243,8 +254,38 @@ def first_hit_range(
         big_t = new
         if done:
             break
-    _, fp = share(big_t)
+    _, fp = _first_share(big_t, x0, t_ca, cos_axis, radius, s0, sd)
     return np.asarray(big_t, dtype=np.float64), np.asarray(1.0 / np.maximum(fp, 1.0), dtype=np.float64)
+
+
+def _first_share(
+    big_t: FloatArray,
+    x0: FloatArray,
+    t_ca: FloatArray,
+    cos_axis: FloatArray,
+    radius: float,
+    s0: float,
+    sd: float,
+) -> tuple[FloatArray, FloatArray]:
+    """``F(T)`` of :func:`first_hit_range` (the share of the spot met at a range ``<= T``) and ``dF/dT``."""
+    p = np.sqrt(np.maximum(1.0 - cos_axis * cos_axis, 1e-12))
+    depth = radius / p
+    ys = (s0 + sd * np.maximum(t_ca, 0.0)) * np.abs(cos_axis) / p
+    eta = _GH_X[None, :]
+    h = _GH_W[None, :]
+    ax0 = np.abs(x0)[:, None]
+    pp = p[:, None]
+    tt = big_t[:, None] - eta * ys[:, None]
+    dd = t_ca[:, None] - tt
+    inside = (dd > 0) & (dd < depth[:, None])
+    x2 = np.where(dd <= 0, radius * radius, np.maximum(radius * radius - np.square(pp * dd), 0.0))
+    xt = np.sqrt(x2)
+    sig = s0 + sd * np.maximum(np.minimum(tt, t_ca[:, None]), 0.0)
+    zp, zm = (xt - ax0) / sig, (-xt - ax0) / sig
+    f = np.sum(h * (ndtr(zp) - ndtr(zm)), axis=1)
+    dxt = np.where(inside, np.square(pp) * dd / np.maximum(xt, 1e-9 * radius), 0.0)
+    dens = (np.exp(-0.5 * zp * zp) + np.exp(-0.5 * zm * zm)) / (np.sqrt(2 * np.pi) * sig)
+    return np.asarray(f, dtype=np.float64), np.asarray(np.sum(h * dens * dxt, axis=1), dtype=np.float64)
 
 
 @dataclass
@@ -256,19 +297,77 @@ class _Solved:
     jac: FloatArray
     n_par: int
     rays: Rays
+    nfev: int = 0
+
+
+def _first_rows(
+    g: _Geom, big_t: FloatArray, slope: FloatArray, tau: float, rays: Rays, optics: BeamOptics
+) -> FloatArray:
+    """Residual rows of the first-hit family: the ranges whitened by ``hypot(sigma_l, share_u
+    dT/dshare)``, then the coverage penalty. The widened sigmas are weights: the fit's objective
+    leaves out their log-determinant (with it, a noiseless 10 % first-hit cloud came out +15 mm:
+    the fit moves toward geometries whose edge beams have flat slopes)."""
+    sigma = np.hypot(rays.sigma_l, optics.share_u * slope)
+    rows = [(rays.ranges - big_t) / sigma, np.maximum(tau - g.c, 0.0) / COVERAGE_SCALE]
+    return np.asarray(np.concatenate(rows), dtype=np.float64)
 
 
 def _residuals(
     theta: FloatArray, frame: _Frame, rays: Rays, optics: BeamOptics, mode: EdgeMode, scale: float = 1.0
 ) -> FloatArray:
     a, w, r = frame.unpack(theta[:5])
-    tau = float(expit(theta[5])) if mode == "first" else 0.0
-    pred, c, slope = _echo(a, w, float(r), rays, optics, mode, tau, scale)
-    sigma = rays.sigma_l if mode == "weighted" else np.hypot(rays.sigma_l, optics.share_u * slope)
-    res = (rays.ranges - pred) / sigma
-    if mode == "first":
-        res = np.concatenate([res, np.maximum(tau - c, 0.0) / COVERAGE_SCALE])
-    return np.asarray(res, dtype=np.float64)
+    if mode == "weighted":
+        pred, _, _ = _echo(a, w, float(r), rays, optics, mode, 0.0, scale)
+        return np.asarray((rays.ranges - pred) / rays.sigma_l, dtype=np.float64)
+    tau = float(expit(theta[5]))
+    g = _geometry(a, w, float(r), rays, optics, scale)
+    big_t, slope = first_hit_range(g.x0, g.t_ca, g.cos_axis, g.radius, g.s0, g.sd, tau, g.c)
+    return _first_rows(g, big_t, slope, tau, rays, optics)
+
+
+#: Steps of the first-hit Jacobian's differences: the geometry (m, rad) and logit(tau).
+_JAC_STEP = np.array([1e-6, 1e-6, 1e-6, 1e-6, 1e-6, 1e-4])
+
+
+def _first_jacobian(theta: FloatArray, frame: _Frame, rays: Rays, optics: BeamOptics) -> FloatArray:
+    """Jacobian of the first-hit rows without re-solving ``F(T) = target`` per column.
+
+    Each parameter is stepped in the cheap closed forms (the beam geometry, the covered share
+    ``c``, ``tau``); the first-hit range then moves by the implicit-function step
+    ``dT = -(F_j(T0) - target_j - F_0(T0) + target_0) / F'(T0)`` (one evaluation of ``F``), and its
+    slope ``dT/dF`` is read at ``T0 + dT`` (one more). Forward differences of the rows follow:
+    first order in the step like a plain finite difference, at two ``F`` evaluations per column
+    instead of a Newton solve. Beams where ``F`` is flat at ``T0`` (``F' < 1`` per metre: a spot that
+    barely meets the part) are re-solved per column, as a plain difference would.
+    """
+    a, w, r = frame.unpack(theta[:5])
+    tau = float(expit(theta[5]))
+    g = _geometry(a, w, float(r), rays, optics, 1.0)
+    big_t, slope = first_hit_range(g.x0, g.t_ca, g.cos_axis, g.radius, g.s0, g.sd, tau, g.c)
+    f0, fp0 = _first_share(big_t, g.x0, g.t_ca, g.cos_axis, g.radius, g.s0, g.sd)
+    f0 = f0 - np.minimum(tau, 0.999 * g.c)
+    flat = np.flatnonzero(fp0 < 1.0)  # F flat at T (a spot that barely meets the part): re-solved
+    fp0 = np.maximum(fp0, 1.0)
+    r0 = _first_rows(g, big_t, slope, tau, rays, optics)
+    jac = np.empty((r0.size, theta.size))
+    for j in range(theta.size):
+        th = theta.copy()
+        th[j] += _JAC_STEP[j]
+        aj, wj, rj = frame.unpack(th[:5])
+        tj = float(expit(th[5]))
+        gj = _geometry(aj, wj, float(rj), rays, optics, 1.0) if j < 5 else g
+        fj, _ = _first_share(big_t, gj.x0, gj.t_ca, gj.cos_axis, gj.radius, gj.s0, gj.sd)
+        tt = big_t - (fj - np.minimum(tj, 0.999 * gj.c) - f0) / fp0
+        if flat.size:
+            tt[flat], _ = first_hit_range(
+                gj.x0[flat], gj.t_ca[flat], gj.cos_axis[flat], gj.radius, gj.s0, gj.sd, tj, gj.c[flat]
+            )
+        sj = slope
+        if optics.share_u > 0.0:
+            _, fpj = _first_share(tt, gj.x0, gj.t_ca, gj.cos_axis, gj.radius, gj.s0, gj.sd)
+            sj = 1.0 / np.maximum(fpj, 1.0)
+        jac[:, j] = (_first_rows(gj, tt, sj, tj, rays, optics) - r0) / _JAC_STEP[j]
+    return jac
 
 
 def _solve(frame: _Frame, rays: Rays, optics: BeamOptics, mode: EdgeMode, start: FloatArray) -> _Solved:
@@ -277,19 +376,31 @@ def _solve(frame: _Frame, rays: Rays, optics: BeamOptics, mode: EdgeMode, start:
     spot = float(2.0 / optics.profile_sigma * optics.sigma(float(np.linalg.norm(frame.a))))
     lo = np.array([-0.05, -0.05, -spot, -spot, -spot, -8.0][: start.size])
     hi = np.array([0.05, 0.05, spot, spot, 0.25 * spot, 8.0][: start.size])
+    jac: object = "2-point"
+    if mode == "first" and _JACOBIAN == "implicit":
+        jac = lambda th: _first_jacobian(th, frame, rays, optics)  # noqa: E731
     out = least_squares(
         lambda th: _residuals(th, frame, rays, optics, mode),
         np.clip(start, lo + 1e-12, hi - 1e-12),
+        jac=jac,
         bounds=(lo, hi),
         method="trf",
         x_scale=np.array([1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 0.3][: start.size]),
         diff_step=np.full(start.size, 1e-5),
+        ftol=_FTOL,
         max_nfev=60 * start.size,
     )
     if not np.all(np.isfinite(out.x)):
         raise FitError("footprint fit diverged")
     tau = float(expit(out.x[5])) if mode == "first" else float("nan")
-    return _Solved(mode, np.asarray(out.x), tau, float(2.0 * out.cost), np.asarray(out.jac), start.size, rays)
+    return _Solved(mode, np.asarray(out.x), tau, float(2.0 * out.cost), np.asarray(out.jac), start.size, rays, out.nfev)
+
+
+#: The first-hit family's Jacobian: "implicit" (:func:`_first_jacobian`) or "2-point" (plain
+#: forward differences through the Newton solve; kept as the benchmark's baseline).
+_JACOBIAN = "implicit"
+#: least_squares' relative tolerance on the cost.
+_FTOL = 1e-8
 
 
 def _end_trim(cyl: Cylinder, rays: Rays, optics: BeamOptics) -> NDArray[np.bool_]:
@@ -335,11 +446,15 @@ def footprint_fit(
     work = rays.subset(use)
     frame = _Frame.at(fit.cylinder.with_point_near(pts[use].mean(axis=0)))
     thin_res = los_residuals(np.zeros(5), frame, work.origins, work.dirs, work.ranges, work.sigma_l, work.sigma_perp)
-    aic_thin = float(np.sum(thin_res * thin_res)) + 2 * 5
+    aic_thin = float(np.sum(np.minimum(thin_res * thin_res, gate * gate))) + 2 * 5
     solved: list[_Solved] = []
     for mode in modes:
         start = np.zeros(5) if mode == "weighted" else np.array([0, 0, 0, 0, 0, float(logit(0.3))])
         try:
+            if mode == "first" and optics.share_u > 0.0:
+                # from the thin beam's solution, down-weighted edge beams let the fit settle on a
+                # wrong (large) radius with a high threshold: fit unweighted first, then weighted
+                start = _solve(frame, work, replace(optics, share_u=0.0), mode, start).theta
             first = _solve(frame, work, optics, mode, start)
             # drop gross outliers under the footprint model, refit once
             res = _residuals(first.theta, frame, work, optics, mode)[: work.ranges.size]
@@ -353,7 +468,16 @@ def footprint_fit(
             continue
     if not solved:
         raise FitError("the footprint fit failed in every edge family")
-    aic = {s.mode: s.cost + 2 * s.n_par for s in solved}
+    # the criterion: -2 log L under the common range noise sigma_l (the first hit's widened sigmas
+    # are the fit's weights, not part of the compared likelihood), on the same beams for every
+    # family, range rows truncated at the gate, plus the first hit's coverage rows, + 2 parameters
+    n_work = work.ranges.size
+    common = replace(optics, share_u=0.0)
+    aic = {}
+    for s in solved:
+        rows = _residuals(s.theta, frame, work, common, s.mode)
+        rr = rows[:n_work]
+        aic[s.mode] = float(np.sum(np.minimum(rr * rr, gate * gate)) + np.sum(rows[n_work:] ** 2)) + 2 * s.n_par
     best = min(solved, key=lambda s: aic[s.mode])
     extra = {
         **fit.extra,
@@ -367,7 +491,9 @@ def footprint_fit(
     n_res = best.rays.ranges.size  # range rows (a first-hit fit adds coverage rows)
     jtj_inv = np.linalg.pinv(jac.T @ jac)
     dof = max(n_res - best.n_par, 1)
-    chi2_dof = best.cost / dof
+    range_rows = _residuals(best.theta, frame, best.rays, optics, best.mode)[:n_res]
+    chi2 = float(np.sum(range_rows * range_rows))
+    chi2_dof = chi2 / dof
     cov_full = jtj_inv * max(1.0, chi2_dof)
     # sensitivity of the solution to the spot size: d theta / d scale = -(J^T J)^-1 J^T d res / d scale
     res_lo = _residuals(best.theta, frame, best.rays, optics, best.mode, scale=0.99)
@@ -384,7 +510,7 @@ def footprint_fit(
         fit,
         cylinder=cyl,
         inliers=idx,
-        rmse=float(np.sqrt(best.cost / n_res)) * float(np.median(best.rays.sigma_l)),
+        rmse=float(np.sqrt(chi2 / n_res)) * float(np.median(best.rays.sigma_l)),
         covariance=np.asarray(cov_full[:5, :5], dtype=np.float64),
         frame=(frame.e1, frame.e2),
         chi2_dof=float(chi2_dof),

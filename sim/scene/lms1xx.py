@@ -88,7 +88,7 @@ class Footprint:
     divergence_rad: float = LMS1XX_DIVERGENCE
     profile_sigma: float = 0.25
     extent: float = 1.5
-    sub_rays: int = 32
+    sub_rays: int = 128
 
     def __post_init__(self) -> None:
         _check("exit_diameter_m", self.exit_diameter_m, hi=1.0)
@@ -468,6 +468,10 @@ def _clusters(hits: SubRayHits, w: FloatArray, separation: float, range_min: flo
 
 #: Names accepted by :func:`make_sensor` (config ``[sim] sensor``, ``lrms sim scanner --sensor``).
 SENSOR_NAMES = ("ideal", "lms1xx")
+#: Sub-rays per beam of the streaming device's "lms1xx" sensor (:func:`make_sensor`): fewer than
+#: :class:`Footprint`'s 128 so that a real-time simulated LMS100 keeps near 25 Hz; its first-hit
+#: sampling moves a footprint fit by up to ~1-2 mm (docs/sensor-model.md, "Cost").
+STREAM_SUB_RAYS = 32
 
 
 def sensor_name(sensor: Sensor) -> str:
@@ -477,7 +481,8 @@ def sensor_name(sensor: Sensor) -> str:
 
 def make_sensor(name: str, sigma_l: float | None = None, sigma_alpha: float | None = None,
                 sigma_beta: float | None = None) -> Sensor:  # fmt: skip
-    """A sensor model by name: "ideal" (thin beam, :class:`SensorModel`) or "lms1xx" (footprint).
+    """A sensor model by name: "ideal" (thin beam, :class:`SensorModel`) or "lms1xx" (footprint,
+    :data:`STREAM_SUB_RAYS` sub-rays per beam: the streaming device's speed over sampling accuracy).
 
     ``sigma_l`` / ``sigma_alpha`` / ``sigma_beta`` (m, rad; None = the model's default) set the
     noise; the LMS1xx model takes only the two angle figures (its range noise is SICK's).
@@ -486,7 +491,7 @@ def make_sensor(name: str, sigma_l: float | None = None, sigma_alpha: float | No
         kw = {k: v for k, v in (("sigma_l", sigma_l), ("sigma_alpha", sigma_alpha), ("sigma_beta", sigma_beta))}
         return SensorModel(**{k: float(v) for k, v in kw.items() if v is not None})
     if name == "lms1xx":
-        base = LMS1xxSensor()
+        base = LMS1xxSensor(footprint=Footprint(sub_rays=STREAM_SUB_RAYS))
         return dataclasses.replace(
             base,
             sigma_alpha=base.sigma_alpha if sigma_alpha is None else float(sigma_alpha),

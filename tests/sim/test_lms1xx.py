@@ -46,8 +46,10 @@ def test_spot_diameter_is_sicks_figure() -> None:
     np.testing.assert_allclose(fp.diameter(np.array([0.0, 2.5, 5.0])), [0.008, 0.0455, 0.083])
     assert 2 * spot_radius(fp, 2.5) == pytest.approx(0.0455, abs=1e-6)  # the sub-rays' cone has it too
     a, b, w = fp.pattern()
-    assert a.shape == b.shape == w.shape == (32,) and w.sum() == pytest.approx(1.0)
-    np.testing.assert_allclose(a[:16], -a[16:])  # point symmetric: each line through the centre halves it
+    k = fp.sub_rays
+    assert k == 128  # the default: the sampling error of the covered share well below the fit's goal
+    assert a.shape == b.shape == w.shape == (k,) and w.sum() == pytest.approx(1.0)
+    np.testing.assert_allclose(a[: k // 2], -a[k // 2 :])  # point symmetric: each line through the centre halves it
     assert np.max(np.hypot(a, b)) <= fp.extent
 
 
@@ -206,7 +208,7 @@ def test_vectorized_shapes_and_chunking_give_the_same_answer() -> None:
     dev = lms1xx_device_angles(0.5)[200:340]
     mot = np.deg2rad(np.linspace(-10, 60, 6))[:, None]
     big = LMS1xxSensor()
-    small = LMS1xxSensor(chunk_rays=96)  # three beams per ray cast
+    small = LMS1xxSensor(chunk_rays=3 * big.footprint.sub_rays)  # three beams per ray cast
     a = cast_beams(scene, cal, big, dev, mot, np.random.default_rng(5))
     b = cast_beams(scene, cal, small, dev, mot, np.random.default_rng(5))
     for name in ("ranges", "valid", "true_range", "index", "rssi", "coverage", "energy", "ranges2", "valid2", "rssi2"):
@@ -226,6 +228,8 @@ def test_ideal_sensor_is_unchanged_and_has_no_second_echo() -> None:
     assert isinstance(make_sensor("ideal", sigma_l=0.02), SensorModel)
     lms = make_sensor("lms1xx", sigma_l=0.02, sigma_alpha=0.0)
     assert isinstance(lms, LMS1xxSensor) and lms.sigma_alpha == 0.0 and lms.sigma_typical == 0.012
+    # the streaming device trades sampling accuracy for speed: fewer sub-rays than the model's default
+    assert lms.footprint.sub_rays == 32 < Footprint().sub_rays
 
 
 def test_room_scene_and_part_in_room() -> None:
