@@ -27,7 +27,12 @@ Artefact layouts (``--layout``; docs/calibration.md, "What limits k1 and the mot
 ``--sweep-deg`` is the motor span, centred on 0 (180: -90..90; 340: -170..170, where most of
 the room is seen twice, from both halves of the 270 deg scan).
 
-    python -m bench.bench_calibration [--runs 20] [--speed 5] [--sweeps 1] [--plane-points 20000] [--seed 0]
+``--poses N`` (1-3): one sweep from each of N rig poses (:data:`POSES`: the origin; 3.0 m along
++y turned 180 deg about z and tipped 1 deg; 1.8 m along +x turned 90 deg), adjusted with a
+separate unknown pose per sweep (``calibrate(..., poses="separate")``); ``--sweeps`` sweeps from
+each pose.
+
+    python -m bench.bench_calibration [--runs 20] [--poses 1] [--speed 5] [--sweeps 1] [--plane-points 20000] [--seed 0]
         [--layout room|long-bar|network] [--sweep-deg 180] [--u-distance 3e-5] [--no-part]
 """
 
@@ -107,10 +112,24 @@ def layout(name: str, u_distance_m: float) -> tuple[Scene, Artefact]:
     return scene, Artefact.from_dict(art)
 
 
+def _pose(t: tuple[float, float, float], yaw_deg: float, tip_deg: float = 0.0) -> np.ndarray:
+    m = np.eye(4)
+    cz, sz = np.cos(D(yaw_deg)), np.sin(D(yaw_deg))
+    cx, sx = np.cos(D(tip_deg)), np.sin(D(tip_deg))
+    m[:3, :3] = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]]) @ np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    m[:3, 3] = t
+    return m
+
+
+#: ``--poses``: the rig's poses in the room (world_from_rig), all inside ``room-spheres`` and at
+#: least 1.3 m from every sphere.
+POSES = (np.eye(4), _pose((0.3, 3.0, 0.0), 180.0, 1.0), _pose((1.8, 1.0, 0.3), 90.0))
+
+
 def calibration_sweep(
-    rig: RigModel, speed_deg_s: float, seed: int, scene: Scene, span_deg: float = 180.0
+    rig: RigModel, speed_deg_s: float, seed: int, scene: Scene, span_deg: float = 180.0, pose: np.ndarray | None = None
 ) -> Observations:
-    cal = RigCalibration(model=rig)
+    cal = RigCalibration(model=rig, world_from_rig=np.eye(4) if pose is None else pose)
     half = D(span_deg / 2)
     _, s = continuous_sweep_cloud(
         scene, cal, SensorModel(), -half, half, D(speed_deg_s), rng=np.random.default_rng(seed)
@@ -153,6 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--layout", choices=("room", "long-bar", "network"), default="room")
     ap.add_argument("--sweep-deg", type=float, default=180.0, help="motor span of a sweep, centred on 0")
     ap.add_argument("--u-distance", type=float, default=3e-5, help="u of the long bar's / network's distances, m")
+    ap.add_argument("--poses", type=int, default=1, choices=(1, 2, 3), help="rig poses, one sweep set each")
     ap.add_argument("--no-part", action="store_true", help="skip the seed 003 part before / after")
     args = ap.parse_args(argv)
     rng = np.random.default_rng(args.seed)
@@ -165,10 +185,13 @@ def main(argv: list[str] | None = None) -> int:
     for run in range(args.runs):
         rig = draw_rig(rng)
         sweeps = [
-            calibration_sweep(rig, args.speed, args.seed * 100_000 + 100 * run + k, scene, args.sweep_deg)
+            calibration_sweep(
+                rig, args.speed, args.seed * 100_000 + 100 * run + 10 * j + k, scene, args.sweep_deg, POSES[j]
+            )
+            for j in range(args.poses)
             for k in range(args.sweeps)
         ]
-        res = calibrate(sweeps, art, options=opts)
+        res = calibrate(sweeps, art, options=opts, poses="separate" if args.poses > 1 else "shared")
         truth = rig.canonical()
         std = res.std()
         worst = ("", 0.0)
@@ -198,7 +221,8 @@ def main(argv: list[str] | None = None) -> int:
         )
     elapsed = time.perf_counter() - t0
     print(
-        f"\n{args.runs} runs in {elapsed:.0f} s; layout {args.layout}; {args.sweeps} calibration sweep(s) per run at "
+        f"\n{args.runs} runs in {elapsed:.0f} s; layout {args.layout}; {args.poses} pose(s) x {args.sweeps} "
+        f"calibration sweep(s) per run at "
         f"{args.speed} deg/s, {-args.sweep_deg / 2:g}..{args.sweep_deg / 2:g} deg, <= {args.plane_points} beams per "
         f"plane; ideal thin beam, sigma_l = 11.67 mm"
     )
