@@ -41,6 +41,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="shared: the sweeps were taken from one rig pose (default); separate: the rig (or the whole artefact) "
         "moved between sweeps, each sweep gets its own unknown pose (registered by three or more common spheres)",
     )
+    parser.add_argument(
+        "--plane-points",
+        type=int,
+        default=20000,
+        help="beams per plane (and per pose) the adjustment uses, a random subset (default 20000)",
+    )
     parser.add_argument("--sigma-l-mm", type=float, default=None, help="range noise (default 11.67 mm, seed 003)")
     parser.add_argument(
         "--upload", metavar="URL", default=None, help="post the calibration to this service (base URL or the endpoint)"
@@ -54,7 +60,15 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from lrms.calibration import Artefact, ArtefactError, CalibrationError, Observations, calibrate
+    from lrms.calibration import (
+        AdjustOptions,
+        Artefact,
+        ArtefactError,
+        CalibrationError,
+        CalibrationOptions,
+        Observations,
+        calibrate,
+    )
     from lrms.covariance import NoiseModel
     from lrms.kinematics import RigModel
     from service.pointio import read_points
@@ -88,7 +102,10 @@ def run(args: argparse.Namespace) -> int:
             "clouds (mapped with the nominal Eq. 1, --p) and raw logs recorded with another rig model cannot be mixed"
         )
     noise = NoiseModel() if args.sigma_l_mm is None else NoiseModel(sigma_l=args.sigma_l_mm / 1e3)
-    result = calibrate(sweeps, artefact, nominal=nominal, noise=noise, poses=args.poses)
+    if args.plane_points < 100:
+        raise CalibrationError(f"--plane-points must be at least 100, got {args.plane_points}")
+    options = CalibrationOptions(adjust=AdjustOptions(max_plane_points=args.plane_points))
+    result = calibrate(sweeps, artefact, nominal=nominal, noise=noise, options=options, poses=args.poses)
     if args.out:
         Path(args.out).write_text(result.to_json() + "\n", encoding="utf-8")
     if args.json:

@@ -126,3 +126,38 @@ def test_bad_pose_option_and_planes_only_are_clear_errors() -> None:
         calibrate([obs, obs], Artefact.from_dict(room_spheres_artefact()), poses="moved")
     with pytest.raises(CalibrationError, match="need reference spheres"):
         calibrate([obs, obs], Artefact(planes=True), poses="separate")
+
+
+def test_the_command_line_takes_clouds_from_two_poses(
+    tmp_path: pytest.TempPathFactory, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``lrms calibrate A.xyz B.xyz --poses separate``: each cloud as today's software writes it (the
+    sweep mapped with the nominal Eq. 1 in its own rig frame)."""
+    import json
+    from pathlib import Path
+
+    from service.cli.main import main
+    from service.pointio import write_xyz
+
+    d = Path(str(tmp_path))
+    names = []
+    for i, t in enumerate(POSES):
+        obs = sweep(t, 10 + i)
+        names.append(str(d / f"pose{i}.xyz"))
+        write_xyz(names[-1], k.forward(obs.l, obs.alpha, obs.beta))
+    art = d / "artefact.json"
+    art.write_text(json.dumps(room_spheres_artefact()))
+    out = d / "cal.json"
+    args = ["--artefact", str(art), "--poses", "separate", "--plane-points", "3000", "--out", str(out)]
+    assert main(["calibrate", *names, *args]) == 0
+    text = capsys.readouterr().out
+    assert "pose of sweep 1: translation (0.0000, 0.0000, 0.0000) m (the world: held)" in text
+    assert "pose of sweep 2: translation (" in text and "held beta_zero" in text
+    res = CalibrationResult.from_json(out.read_text())
+    assert len(res.poses) == 2 and res.sources == tuple(names)
+    # 3 m away, seen through the estimate's frame (turned by the held motor zero: millimetres here)
+    np.testing.assert_allclose(res.poses[1].world_from_rig[:3, 3], POSES[1][:3, 3], atol=0.01)
+    truth = TRUE_RIG.canonical()
+    std = res.std()
+    for name in ("k0", "k1", "p", "tilt_x", "alpha_zero"):
+        assert abs(getattr(res.model, name) - getattr(truth, name)) <= 3 * std[name], name
