@@ -33,7 +33,11 @@ separate unknown pose per sweep (``calibrate(..., poses="separate")``); ``--swee
 each pose.
 
     python -m bench.bench_calibration [--runs 20] [--poses 1] [--speed 5] [--sweeps 1] [--plane-points 20000] [--seed 0]
-        [--layout room|long-bar|network] [--sweep-deg 180] [--u-distance 3e-5] [--no-part]
+        [--layout room|long-bar|network] [--sweep-deg 180] [--u-distance 3e-5] [--no-part] [--lms1xx]
+
+``--lms1xx``: also seed 003's part measured with the LMS1xx footprint sensor (noise on) as the
+service measures it (:func:`lms_part`), before (nominal mapping, uncalibrated budget) and after
+(the calibration's model and its budget row): the diameter error against the reported U.
 """
 
 from __future__ import annotations
@@ -44,7 +48,15 @@ import time
 
 import numpy as np
 
-from lrms.calibration import GOAL, AdjustOptions, Artefact, CalibrationOptions, Observations, calibrate
+from lrms.calibration import (
+    GOAL,
+    AdjustOptions,
+    Artefact,
+    CalibrationOptions,
+    CalibrationResult,
+    Observations,
+    calibrate,
+)
 from lrms.cylinder import Cylinder, Rays, fit_cylinder
 from lrms.kinematics import RigCalibration, RigModel
 from sim.scene import (
@@ -158,6 +170,76 @@ def part_fit(true_rig: RigModel, mapping: RigModel, seed: int) -> tuple[float, n
     return fit.diameter, fit.cylinder.direction / np.linalg.norm(fit.cylinder.direction)
 
 
+#: ``--lms1xx``: the region of interest around seed 003's part (rig frame = world), as bench_sensor_model's "roi".
+_ROI_HALF = np.array([SEED003_DIAMETER / 2 + 0.35, SEED003_DIAMETER / 2 + 0.3, 0.0])
+PART_ROI = (
+    np.array([SEED003_AXIS_POINT[0], SEED003_AXIS_POINT[1], SEED003_AXIS_POINT[2] - 0.05]) - _ROI_HALF,
+    np.array([SEED003_AXIS_POINT[0], SEED003_AXIS_POINT[1], SEED003_AXIS_POINT[2] + 0.9]) + _ROI_HALF,
+)
+
+
+def lms_part(
+    true_rig: RigModel, mapping: RigModel, calibration: CalibrationResult | None, seed: int
+) -> dict[str, float]:
+    """Seed 003's part measured as the service measures it, with the LMS1xx footprint sensor: a
+    step-and-scan sweep (-35..75 deg, 0.4 deg steps, beams 60..120 deg) by ``true_rig`` with
+    SICK's noise and the beam footprint, the readings in :data:`PART_ROI` mapped with ``mapping``,
+    fitted with the footprint model (``BeamOptics``, nominal diameter +-10 %) by
+    :func:`service.fitting.cylinder_result`, whose budget carries the calibration's row (and
+    without a calibration the uncalibrated LMS1xx rows). Returns the diameter error (m), U (m, k = 2)
+    and the calibration row's u (m; 0 without one)."""
+    from lrms.budget import BeamGeometry
+    from lrms.calibration.budget import calibration_input
+    from lrms.covariance import NoiseModel
+    from lrms.cylinder import BeamOptics, nominal_diameter_range
+    from service.fitting import cylinder_result
+    from sim.scene import LMS1xxSensor
+
+    truth = RigCalibration(model=true_rig)
+    dev = lms1xx_device_angles(0.25)
+    dev = dev[(dev > D(60)) & (dev < D(120))]
+    mot = D(np.arange(-35.0, 75.0, 0.4))[:, None]
+    rng = np.random.default_rng(seed)
+    s = cast_beams(get_scene("seed003-bare"), truth, LMS1xxSensor(), dev, mot, rng)
+    shape = s.valid.shape
+    alpha = truth.alpha(np.broadcast_to(dev, shape))[s.valid]
+    beta = truth.beta(np.broadcast_to(mot, shape))[s.valid]
+    scan = np.broadcast_to(np.arange(shape[0])[:, None], shape)[s.valid]
+    l = s.ranges[s.valid]
+    o, d = mapping.rays(alpha, beta)
+    geo = mapping.geometric_range(l)
+    pts = o + geo[:, None] * d
+    keep = np.all((pts >= PART_ROI[0]) & (pts <= PART_ROI[1]), axis=1)
+    l, alpha, beta, scan, o, d, geo = l[keep], alpha[keep], beta[keep], scan[keep], o[keep], d[keep], geo[keep]
+    nm = NoiseModel()
+    lateral = np.hypot(l * nm.sigma_alpha, (l * np.sin(alpha) + mapping.p) * nm.sigma_beta)
+    rays = Rays(o, d, geo, np.full(l.shape, nm.sigma_l * (1.0 + mapping.k1)), np.maximum(lateral, 1e-7))
+    row = None
+    if calibration is not None:
+        cal = dataclasses.replace(calibration, model=mapping)
+
+        def row(fit: object, inlier_rays: Rays) -> object:
+            i = fit.inliers  # type: ignore[attr-defined]
+            return calibration_input(cal, fit, inlier_rays, l[i], alpha[i], beta[i], None, "bench")  # type: ignore[arg-type]
+
+    result, _, _ = cylinder_result(
+        rays.points(),
+        rays=rays,
+        noise=nm,
+        p=mapping.p,
+        rng=np.random.default_rng(seed),
+        optics=BeamOptics(),
+        diameter_range=nominal_diameter_range(SEED003_DIAMETER),
+        beams=BeamGeometry(alpha, beta, mapping.p, 0.0, scan),
+        calibration=row,  # type: ignore[arg-type]
+    )
+    unc = result["uncertainty"]
+    u_cal = sum(r["u_m"] for r in unc["budget"] if r["source"] == "calibration")
+    top = sorted(unc["budget"], key=lambda r: -float(r["u_m"] or 0.0))[:3]
+    print("        largest rows: " + ", ".join(f"{r['source']} {1e3 * float(r['u_m'] or 0.0):.2f} mm" for r in top))
+    return {"error": result["diameter_m"] - SEED003_DIAMETER, "U": unc["expanded_m"], "u_cal": u_cal}
+
+
 def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.rad2deg(np.arccos(np.clip(abs(float(a @ b)), -1.0, 1.0))))
 
@@ -173,6 +255,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sweep-deg", type=float, default=180.0, help="motor span of a sweep, centred on 0")
     ap.add_argument("--u-distance", type=float, default=3e-5, help="u of the long bar's / network's distances, m")
     ap.add_argument("--poses", type=int, default=1, choices=(1, 2, 3), help="rig poses, one sweep set each")
+    ap.add_argument(
+        "--lms1xx", action="store_true", help="also measure the part with the LMS1xx footprint sensor: error vs U"
+    )
     ap.add_argument("--no-part", action="store_true", help="skip the seed 003 part before / after")
     args = ap.parse_args(argv)
     rng = np.random.default_rng(args.seed)
@@ -181,6 +266,7 @@ def main(argv: list[str] | None = None) -> int:
     errs: dict[str, list[float]] = {}
     stds: dict[str, list[float]] = {}
     rows = []
+    lms: list[tuple[dict[str, float], dict[str, float]]] = []
     t0 = time.perf_counter()
     for run in range(args.runs):
         rig = draw_rig(rng)
@@ -209,6 +295,14 @@ def main(argv: list[str] | None = None) -> int:
             d_ideal, a_ideal = part_fit(RigModel(), RigModel(), seed)
             d_before, a_before = part_fit(rig, RigModel(), seed)
             d_after, a_after = part_fit(rig, posed, seed)
+        if args.lms1xx:
+            lms.append((lms_part(rig, RigModel(), None, seed), lms_part(rig, posed, res, seed)))
+            b, a = lms[-1]
+            print(
+                f"        LMS1xx part: before {b['error'] * 1e3:+6.2f} mm (U {b['U'] * 1e3:.2f}), after "
+                f"{a['error'] * 1e3:+6.2f} mm (U {a['U'] * 1e3:.2f}, calibration row u {a['u_cal'] * 1e3:.3f} mm)",
+                flush=True,
+            )
         rows.append(
             (d_before - d_ideal, angle_deg(a_before, a_ideal), d_after - d_ideal, angle_deg(a_after, a_ideal),
              res.residuals["variance_factor"])
@@ -251,6 +345,15 @@ def main(argv: list[str] | None = None) -> int:
           f"{0.02:8.3f}")  # fmt: skip
     print(f"  {'axis max (deg)':24s} {np.max(r[:, 1]):12.4f} {np.max(r[:, 3]):12.4f} {0.02:8.3f}")
     print(f"  variance factor of the calibrations: {np.min(r[:, 4]):.3f} .. {np.max(r[:, 4]):.3f}")
+    if lms:
+        print("\nseed 003 part with the LMS1xx footprint (noise on; footprint fit; U with k = 2), before / after:")
+        for label, k in (("before", 0), ("after", 1)):
+            ee = np.array([x[k]["error"] for x in lms]) * 1e3
+            uu = np.array([x[k]["U"] for x in lms]) * 1e3
+            print(
+                f"  {label:7s} error rms {np.sqrt(np.mean(ee**2)):6.3f} mm, max |e| {np.max(np.abs(ee)):6.3f} mm, "
+                f"mean U {np.mean(uu):6.3f} mm, |e| <= U in {int(np.sum(np.abs(ee) <= uu))} of {len(ee)}"
+            )
     return 0
 
 
