@@ -192,6 +192,7 @@ def lms_part(
     from lrms.calibration.budget import calibration_input
     from lrms.covariance import NoiseModel
     from lrms.cylinder import BeamOptics, nominal_diameter_range
+    from lrms.errors import LrmsError
     from service.fitting import cylinder_result
     from sim.scene import LMS1xxSensor
 
@@ -222,17 +223,21 @@ def lms_part(
             i = fit.inliers  # type: ignore[attr-defined]
             return calibration_input(cal, fit, inlier_rays, l[i], alpha[i], beta[i], None, "bench")  # type: ignore[arg-type]
 
-    result, _, _ = cylinder_result(
-        rays.points(),
-        rays=rays,
-        noise=nm,
-        p=mapping.p,
-        rng=np.random.default_rng(seed),
-        optics=BeamOptics(),
-        diameter_range=nominal_diameter_range(SEED003_DIAMETER),
-        beams=BeamGeometry(alpha, beta, mapping.p, 0.0, scan),
-        calibration=row,  # type: ignore[arg-type]
-    )
+    try:
+        result, _, _ = cylinder_result(
+            rays.points(),
+            rays=rays,
+            noise=nm,
+            p=mapping.p,
+            rng=np.random.default_rng(seed),
+            optics=BeamOptics(),
+            diameter_range=nominal_diameter_range(SEED003_DIAMETER),
+            beams=BeamGeometry(alpha, beta, mapping.p, 0.0, scan),
+            calibration=row,  # type: ignore[arg-type]
+        )
+    except LrmsError as exc:  # e.g. no cylinder of the nominal diameter in a badly mapped cloud
+        print(f"        fit failed: {exc}")
+        return {"error": float("nan"), "U": float("nan"), "u_cal": float("nan")}
     unc = result["uncertainty"]
     u_cal = sum(r["u_m"] for r in unc["budget"] if r["source"] == "calibration")
     top = sorted(unc["budget"], key=lambda r: -float(r["u_m"] or 0.0))[:3]
@@ -350,9 +355,15 @@ def main(argv: list[str] | None = None) -> int:
         for label, k in (("before", 0), ("after", 1)):
             ee = np.array([x[k]["error"] for x in lms]) * 1e3
             uu = np.array([x[k]["U"] for x in lms]) * 1e3
+            failed = int(np.sum(np.isnan(ee)))
+            ee, uu = ee[~np.isnan(ee)], uu[~np.isnan(ee)]
+            if ee.size == 0:
+                print(f"  {label:7s} every fit failed ({failed})")
+                continue
             print(
                 f"  {label:7s} error rms {np.sqrt(np.mean(ee**2)):6.3f} mm, max |e| {np.max(np.abs(ee)):6.3f} mm, "
-                f"mean U {np.mean(uu):6.3f} mm, |e| <= U in {int(np.sum(np.abs(ee) <= uu))} of {len(ee)}"
+                f"mean U {np.mean(uu):6.3f} mm, |e| <= U in {int(np.sum(np.abs(ee) <= uu))} of {len(ee)} "
+                f"({failed} fits failed)"
             )
     return 0
 
