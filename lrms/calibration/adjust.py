@@ -11,6 +11,13 @@ sum of squares is minimised by Gauss-Newton with Levenberg-Marquardt damping on 
 equations (the Jacobian is sparse: every beam touches the rig and one surface; the normal matrix
 is small). Rig-parameter derivatives are central differences of the vectorised model.
 
+Several rig poses (``which`` and ``poses``): every sweep after the first has its own rigid pose
+(rotation about the world axes, multiplied onto its current rotation, and translation: six
+unknowns between the rig's and the surfaces'); every beam's ray is placed in the world by its
+own sweep's pose, so a beam row has six pose columns, its own sweep's (none for the first sweep,
+whose rig frame is the world). Pose derivatives are central differences too: nudging every
+pose's k-th parameter at once gives every beam's derivative by its own pose.
+
 Identifiability: the normal matrix is reduced to the rig parameters (surfaces eliminated by the
 Schur complement), its columns are scaled by each parameter's tolerance spread (:data:`SPREAD`:
 30 mm, 1000 ppm, 5 mm, 0.3 deg, ...), and while its smallest eigenvalue is below
