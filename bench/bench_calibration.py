@@ -27,8 +27,17 @@ Artefact layouts (``--layout``; docs/calibration.md, "What limits k1 and the mot
 ``--sweep-deg`` is the motor span, centred on 0 (180: -90..90; 340: -170..170, where most of
 the room is seen twice, from both halves of the 270 deg scan).
 
-    python -m bench.bench_calibration [--runs 20] [--speed 5] [--sweeps 1] [--plane-points 20000] [--seed 0]
-        [--layout room|long-bar|network] [--sweep-deg 180] [--u-distance 3e-5] [--no-part]
+``--poses N`` (1-3): one sweep from each of N rig poses (:data:`POSES`: the origin; 3.0 m along
++y turned 180 deg about z and tipped 1 deg; 1.8 m along +x turned 90 deg), adjusted with a
+separate unknown pose per sweep (``calibrate(..., poses="separate")``); ``--sweeps`` sweeps from
+each pose.
+
+    python -m bench.bench_calibration [--runs 20] [--poses 1] [--speed 5] [--sweeps 1] [--plane-points 20000] [--seed 0]
+        [--layout room|long-bar|network] [--sweep-deg 180] [--u-distance 3e-5] [--no-part] [--lms1xx]
+
+``--lms1xx``: also seed 003's part measured with the LMS1xx footprint sensor (noise on) as the
+service measures it (:func:`lms_part`), before (nominal mapping, uncalibrated budget) and after
+(the calibration's model and its budget row): the diameter error against the reported U.
 """
 
 from __future__ import annotations
@@ -39,7 +48,15 @@ import time
 
 import numpy as np
 
-from lrms.calibration import GOAL, AdjustOptions, Artefact, CalibrationOptions, Observations, calibrate
+from lrms.calibration import (
+    GOAL,
+    AdjustOptions,
+    Artefact,
+    CalibrationOptions,
+    CalibrationResult,
+    Observations,
+    calibrate,
+)
 from lrms.cylinder import Cylinder, Rays, fit_cylinder
 from lrms.kinematics import RigCalibration, RigModel
 from sim.scene import (
@@ -107,10 +124,24 @@ def layout(name: str, u_distance_m: float) -> tuple[Scene, Artefact]:
     return scene, Artefact.from_dict(art)
 
 
+def _pose(t: tuple[float, float, float], yaw_deg: float, tip_deg: float = 0.0) -> np.ndarray:
+    m = np.eye(4)
+    cz, sz = np.cos(D(yaw_deg)), np.sin(D(yaw_deg))
+    cx, sx = np.cos(D(tip_deg)), np.sin(D(tip_deg))
+    m[:3, :3] = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]]) @ np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    m[:3, 3] = t
+    return m
+
+
+#: ``--poses``: the rig's poses in the room (world_from_rig), all inside ``room-spheres`` and at
+#: least 1.3 m from every sphere.
+POSES = (np.eye(4), _pose((0.3, 3.0, 0.0), 180.0, 1.0), _pose((1.8, 1.0, 0.3), 90.0))
+
+
 def calibration_sweep(
-    rig: RigModel, speed_deg_s: float, seed: int, scene: Scene, span_deg: float = 180.0
+    rig: RigModel, speed_deg_s: float, seed: int, scene: Scene, span_deg: float = 180.0, pose: np.ndarray | None = None
 ) -> Observations:
-    cal = RigCalibration(model=rig)
+    cal = RigCalibration(model=rig, world_from_rig=np.eye(4) if pose is None else pose)
     half = D(span_deg / 2)
     _, s = continuous_sweep_cloud(
         scene, cal, SensorModel(), -half, half, D(speed_deg_s), rng=np.random.default_rng(seed)
@@ -139,6 +170,81 @@ def part_fit(true_rig: RigModel, mapping: RigModel, seed: int) -> tuple[float, n
     return fit.diameter, fit.cylinder.direction / np.linalg.norm(fit.cylinder.direction)
 
 
+#: ``--lms1xx``: the region of interest around seed 003's part (rig frame = world), as bench_sensor_model's "roi".
+_ROI_HALF = np.array([SEED003_DIAMETER / 2 + 0.35, SEED003_DIAMETER / 2 + 0.3, 0.0])
+PART_ROI = (
+    np.array([SEED003_AXIS_POINT[0], SEED003_AXIS_POINT[1], SEED003_AXIS_POINT[2] - 0.05]) - _ROI_HALF,
+    np.array([SEED003_AXIS_POINT[0], SEED003_AXIS_POINT[1], SEED003_AXIS_POINT[2] + 0.9]) + _ROI_HALF,
+)
+
+
+def lms_part(
+    true_rig: RigModel, mapping: RigModel, calibration: CalibrationResult | None, seed: int
+) -> dict[str, float]:
+    """Seed 003's part measured as the service measures it, with the LMS1xx footprint sensor: a
+    step-and-scan sweep (-35..75 deg, 0.4 deg steps, beams 60..120 deg) by ``true_rig`` with
+    SICK's noise and the beam footprint, the readings in :data:`PART_ROI` mapped with ``mapping``,
+    fitted with the footprint model (``BeamOptics``, nominal diameter +-10 %) by
+    :func:`service.fitting.cylinder_result`, whose budget carries the calibration's row (and
+    without a calibration the uncalibrated LMS1xx rows). Returns the diameter error (m), U (m, k = 2)
+    and the calibration row's u (m; 0 without one)."""
+    from lrms.budget import BeamGeometry
+    from lrms.calibration.budget import calibration_input
+    from lrms.covariance import NoiseModel
+    from lrms.cylinder import BeamOptics, nominal_diameter_range
+    from lrms.errors import LrmsError
+    from service.fitting import cylinder_result
+    from sim.scene import LMS1xxSensor
+
+    truth = RigCalibration(model=true_rig)
+    dev = lms1xx_device_angles(0.25)
+    dev = dev[(dev > D(60)) & (dev < D(120))]
+    mot = D(np.arange(-35.0, 75.0, 0.4))[:, None]
+    rng = np.random.default_rng(seed)
+    s = cast_beams(get_scene("seed003-bare"), truth, LMS1xxSensor(), dev, mot, rng)
+    shape = s.valid.shape
+    alpha = truth.alpha(np.broadcast_to(dev, shape))[s.valid]
+    beta = truth.beta(np.broadcast_to(mot, shape))[s.valid]
+    scan = np.broadcast_to(np.arange(shape[0])[:, None], shape)[s.valid]
+    l = s.ranges[s.valid]
+    o, d = mapping.rays(alpha, beta)
+    geo = mapping.geometric_range(l)
+    pts = o + geo[:, None] * d
+    keep = np.all((pts >= PART_ROI[0]) & (pts <= PART_ROI[1]), axis=1)
+    l, alpha, beta, scan, o, d, geo = l[keep], alpha[keep], beta[keep], scan[keep], o[keep], d[keep], geo[keep]
+    nm = NoiseModel()
+    lateral = np.hypot(l * nm.sigma_alpha, (l * np.sin(alpha) + mapping.p) * nm.sigma_beta)
+    rays = Rays(o, d, geo, np.full(l.shape, nm.sigma_l * (1.0 + mapping.k1)), np.maximum(lateral, 1e-7))
+    row = None
+    if calibration is not None:
+        cal = dataclasses.replace(calibration, model=mapping)
+
+        def row(fit: object, inlier_rays: Rays) -> object:
+            i = fit.inliers  # type: ignore[attr-defined]
+            return calibration_input(cal, fit, inlier_rays, l[i], alpha[i], beta[i], None, "bench")  # type: ignore[arg-type]
+
+    try:
+        result, _, _ = cylinder_result(
+            rays.points(),
+            rays=rays,
+            noise=nm,
+            p=mapping.p,
+            rng=np.random.default_rng(seed),
+            optics=BeamOptics(),
+            diameter_range=nominal_diameter_range(SEED003_DIAMETER),
+            beams=BeamGeometry(alpha, beta, mapping.p, 0.0, scan),
+            calibration=row,  # type: ignore[arg-type]
+        )
+    except LrmsError as exc:  # e.g. no cylinder of the nominal diameter in a badly mapped cloud
+        print(f"        fit failed: {exc}")
+        return {"error": float("nan"), "U": float("nan"), "u_cal": float("nan")}
+    unc = result["uncertainty"]
+    u_cal = sum(r["u_m"] for r in unc["budget"] if r["source"] == "calibration")
+    top = sorted(unc["budget"], key=lambda r: -float(r["u_m"] or 0.0))[:3]
+    print("        largest rows: " + ", ".join(f"{r['source']} {1e3 * float(r['u_m'] or 0.0):.2f} mm" for r in top))
+    return {"error": result["diameter_m"] - SEED003_DIAMETER, "U": unc["expanded_m"], "u_cal": u_cal}
+
+
 def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.rad2deg(np.arccos(np.clip(abs(float(a @ b)), -1.0, 1.0))))
 
@@ -153,6 +259,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--layout", choices=("room", "long-bar", "network"), default="room")
     ap.add_argument("--sweep-deg", type=float, default=180.0, help="motor span of a sweep, centred on 0")
     ap.add_argument("--u-distance", type=float, default=3e-5, help="u of the long bar's / network's distances, m")
+    ap.add_argument("--poses", type=int, default=1, choices=(1, 2, 3), help="rig poses, one sweep set each")
+    ap.add_argument(
+        "--lms1xx", action="store_true", help="also measure the part with the LMS1xx footprint sensor: error vs U"
+    )
     ap.add_argument("--no-part", action="store_true", help="skip the seed 003 part before / after")
     args = ap.parse_args(argv)
     rng = np.random.default_rng(args.seed)
@@ -161,14 +271,18 @@ def main(argv: list[str] | None = None) -> int:
     errs: dict[str, list[float]] = {}
     stds: dict[str, list[float]] = {}
     rows = []
+    lms: list[tuple[dict[str, float], dict[str, float]]] = []
     t0 = time.perf_counter()
     for run in range(args.runs):
         rig = draw_rig(rng)
         sweeps = [
-            calibration_sweep(rig, args.speed, args.seed * 100_000 + 100 * run + k, scene, args.sweep_deg)
+            calibration_sweep(
+                rig, args.speed, args.seed * 100_000 + 100 * run + 10 * j + k, scene, args.sweep_deg, POSES[j]
+            )
+            for j in range(args.poses)
             for k in range(args.sweeps)
         ]
-        res = calibrate(sweeps, art, options=opts)
+        res = calibrate(sweeps, art, options=opts, poses="separate" if args.poses > 1 else "shared")
         truth = rig.canonical()
         std = res.std()
         worst = ("", 0.0)
@@ -186,6 +300,14 @@ def main(argv: list[str] | None = None) -> int:
             d_ideal, a_ideal = part_fit(RigModel(), RigModel(), seed)
             d_before, a_before = part_fit(rig, RigModel(), seed)
             d_after, a_after = part_fit(rig, posed, seed)
+        if args.lms1xx:
+            lms.append((lms_part(rig, RigModel(), None, seed), lms_part(rig, posed, res, seed)))
+            b, a = lms[-1]
+            print(
+                f"        LMS1xx part: before {b['error'] * 1e3:+6.2f} mm (U {b['U'] * 1e3:.2f}), after "
+                f"{a['error'] * 1e3:+6.2f} mm (U {a['U'] * 1e3:.2f}, calibration row u {a['u_cal'] * 1e3:.3f} mm)",
+                flush=True,
+            )
         rows.append(
             (d_before - d_ideal, angle_deg(a_before, a_ideal), d_after - d_ideal, angle_deg(a_after, a_ideal),
              res.residuals["variance_factor"])
@@ -198,7 +320,8 @@ def main(argv: list[str] | None = None) -> int:
         )
     elapsed = time.perf_counter() - t0
     print(
-        f"\n{args.runs} runs in {elapsed:.0f} s; layout {args.layout}; {args.sweeps} calibration sweep(s) per run at "
+        f"\n{args.runs} runs in {elapsed:.0f} s; layout {args.layout}; {args.poses} pose(s) x {args.sweeps} "
+        f"calibration sweep(s) per run at "
         f"{args.speed} deg/s, {-args.sweep_deg / 2:g}..{args.sweep_deg / 2:g} deg, <= {args.plane_points} beams per "
         f"plane; ideal thin beam, sigma_l = 11.67 mm"
     )
@@ -227,6 +350,21 @@ def main(argv: list[str] | None = None) -> int:
           f"{0.02:8.3f}")  # fmt: skip
     print(f"  {'axis max (deg)':24s} {np.max(r[:, 1]):12.4f} {np.max(r[:, 3]):12.4f} {0.02:8.3f}")
     print(f"  variance factor of the calibrations: {np.min(r[:, 4]):.3f} .. {np.max(r[:, 4]):.3f}")
+    if lms:
+        print("\nseed 003 part with the LMS1xx footprint (noise on; footprint fit; U with k = 2), before / after:")
+        for label, k in (("before", 0), ("after", 1)):
+            ee = np.array([x[k]["error"] for x in lms]) * 1e3
+            uu = np.array([x[k]["U"] for x in lms]) * 1e3
+            failed = int(np.sum(np.isnan(ee)))
+            ee, uu = ee[~np.isnan(ee)], uu[~np.isnan(ee)]
+            if ee.size == 0:
+                print(f"  {label:7s} every fit failed ({failed})")
+                continue
+            print(
+                f"  {label:7s} error rms {np.sqrt(np.mean(ee**2)):6.3f} mm, max |e| {np.max(np.abs(ee)):6.3f} mm, "
+                f"mean U {np.mean(uu):6.3f} mm, |e| <= U in {int(np.sum(np.abs(ee) <= uu))} of {len(ee)} "
+                f"({failed} fits failed)"
+            )
     return 0
 
 

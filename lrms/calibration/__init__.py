@@ -32,8 +32,9 @@ from lrms.calibration.data import (
     SphereSpec,
     concatenate,
 )
-from lrms.calibration.detect import DetectOptions, detect_planes, detect_spheres
-from lrms.calibration.result import CalibrationResult, Identifiability, SurfaceFit
+from lrms.calibration.detect import DetectOptions, PlaneSeg, SphereSeg, detect_planes, detect_spheres
+from lrms.calibration.poses import RegistrationError, merge
+from lrms.calibration.result import CalibrationResult, Identifiability, PoseFit, SurfaceFit
 from lrms.covariance import NoiseModel
 from lrms.kinematics import RigModel
 
@@ -52,6 +53,8 @@ __all__ = [
     "DistanceSpec",
     "Identifiability",
     "Observations",
+    "PoseFit",
+    "RegistrationError",
     "SphereSpec",
     "SurfaceFit",
     "apply_to_points",
@@ -75,32 +78,46 @@ def calibrate(
     nominal: RigModel | None = None,
     noise: NoiseModel | None = None,
     options: CalibrationOptions | None = None,
+    poses: str = "shared",
 ) -> CalibrationResult:
     """Estimate the rig (:class:`RigModel`) from calibration sweeps of ``artefact``.
 
     The surfaces are found in the cloud mapped with ``nominal`` (default: seed 003's Eq. 1), the
     parameters the data cannot determine are held at their nominal values (the result's
     identifiability report says which, why, and what data would determine them), and the others
-    are adjusted jointly with the surfaces. Raises :class:`CloudTooSmallError`,
+    are adjusted jointly with the surfaces.
+
+    ``poses``: "shared" (the sweeps were taken with the rig and the artefact unmoved: one cloud) or
+    "separate" (the rig, or the whole artefact, moved between sweeps: each sweep after the first
+    has its own unknown rigid pose, six parameters, adjusted jointly with the rig; the sweeps are
+    registered first by the reference spheres they share, :mod:`lrms.calibration.poses`, which
+    needs three common spheres off a line). Raises :class:`CloudTooSmallError`,
     :class:`DetectionError` (no planes / spheres found) or :class:`CalibrationError`.
     """
     nom = nominal if nominal is not None else RigModel()
     nm = noise if noise is not None else NoiseModel()
     opts = options if options is not None else CalibrationOptions()
-    obs, _ = concatenate(list(sweeps))
+    if poses not in ("shared", "separate"):
+        raise CalibrationError(f"poses must be 'shared' or 'separate', got {poses!r}")
+    separate = poses == "separate" and len(sweeps) > 1
+    obs, which = concatenate(list(sweeps))
     if len(obs) < MIN_OBSERVATIONS:
         raise CloudTooSmallError(f"a calibration needs at least {MIN_OBSERVATIONS} valid beams, got {len(obs)}")
-    points = nom.forward(obs.l, obs.alpha, obs.beta, obs.omega)
-    rng = np.random.default_rng(opts.detect.seed)
-    planes = detect_planes(points, opts.detect, rng) if artefact.planes else []
-    if artefact.planes and not planes:
-        raise DetectionError(f"no planes found (none with >= {opts.detect.min_plane_points} points)")
-    on_plane = np.zeros(len(obs), dtype=bool)
-    for pl in planes:
-        on_plane[pl.index] = True
-    spheres = detect_spheres(points, np.flatnonzero(~on_plane), artefact, opts.detect)
-
-    adj = Adjustment(obs, planes, spheres, artefact, nom, nm, opts.adjust)
+    if separate:
+        if not artefact.spheres:
+            raise CalibrationError("separate poses need reference spheres (three or more) to register the sweeps")
+        found = []
+        for k, s in enumerate(sweeps):
+            try:
+                found.append(_detect(s, artefact, nom, opts.detect))
+            except CalibrationError as exc:
+                raise type(exc)(f"sweep {k + 1}: {exc}") from None
+        offsets = np.cumsum([0, *(len(s) for s in sweeps)])[:-1]
+        planes, spheres, initial = merge([f[0] for f in found], [f[1] for f in found], [int(o) for o in offsets])
+        adj = Adjustment(obs, planes, spheres, artefact, nom, nm, opts.adjust, which=which, poses=initial)
+    else:
+        planes, spheres = _detect(obs, artefact, nom, opts.detect)
+        adj = Adjustment(obs, planes, spheres, artefact, nom, nm, opts.adjust)
     adj._init_sigma()
     names, _, _ = adj.choose_free()
     adj.solve(names)  # a first estimate from the loose segmentation of the nominal cloud
@@ -154,7 +171,34 @@ def calibrate(
         sources=tuple(s.source for s in sweeps if s.source),
         created=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         software_version=lrms.__version__,
+        poses=_pose_fits(adj, sweeps) if separate else (),
     )
+
+
+def _detect(
+    obs: Observations, artefact: Artefact, nominal: RigModel, opts: DetectOptions
+) -> tuple[list[PlaneSeg], list[SphereSeg]]:
+    """Planes and spheres in the cloud of ``obs`` mapped with the nominal rig."""
+    points = nominal.forward(obs.l, obs.alpha, obs.beta, obs.omega)
+    rng = np.random.default_rng(opts.seed)
+    planes = detect_planes(points, opts, rng) if artefact.planes else []
+    if artefact.planes and not planes:
+        raise DetectionError(f"no planes found (none with >= {opts.min_plane_points} points)")
+    on_plane = np.zeros(len(obs), dtype=bool)
+    for pl in planes:
+        on_plane[pl.index] = True
+    return planes, detect_spheres(points, np.flatnonzero(~on_plane), artefact, opts)
+
+
+def _pose_fits(adj: Adjustment, sweeps: Sequence[Observations]) -> tuple[PoseFit, ...]:
+    out = []
+    std = np.sqrt(np.clip(np.diag(adj.pose_covariance), 0, None))
+    for k in range(adj.n_poses):
+        t = np.eye(4)
+        t[:3, :3], t[:3, 3] = adj.state.rot[k], adj.state.trans[k]
+        s = tuple(float(x) for x in std[6 * (k - 1) : 6 * k]) if k else (0.0,) * 6
+        out.append(PoseFit(k, t, s, sweeps[k].source))
+    return tuple(out)
 
 
 def apply_to_points(points: np.ndarray, calibration: CalibrationResult) -> np.ndarray:

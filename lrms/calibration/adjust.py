@@ -11,6 +11,13 @@ sum of squares is minimised by Gauss-Newton with Levenberg-Marquardt damping on 
 equations (the Jacobian is sparse: every beam touches the rig and one surface; the normal matrix
 is small). Rig-parameter derivatives are central differences of the vectorised model.
 
+Several rig poses (``which`` and ``poses``): every sweep after the first has its own rigid pose
+(rotation about the world axes, multiplied onto its current rotation, and translation: six
+unknowns between the rig's and the surfaces'); every beam's ray is placed in the world by its
+own sweep's pose, so a beam row has six pose columns, its own sweep's (none for the first sweep,
+whose rig frame is the world). Pose derivatives are central differences too: nudging every
+pose's k-th parameter at once gives every beam's derivative by its own pose.
+
 Identifiability: the normal matrix is reduced to the rig parameters (surfaces eliminated by the
 Schur complement), its columns are scaled by each parameter's tolerance spread (:data:`SPREAD`:
 30 mm, 1000 ppm, 5 mm, 0.3 deg, ...), and while its smallest eigenvalue is below
@@ -21,11 +28,13 @@ with at least a third of the largest share) is held at its nominal value.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy import sparse
+from scipy.spatial.transform import Rotation
 
 from lrms.calibration.data import Artefact, CalibrationError, DetectionError, DistanceSpec, Observations
 from lrms.calibration.detect import PlaneSeg, SphereSeg
@@ -54,6 +63,8 @@ _STEP = {
     "k0": 1e-4, "k1": 1e-5, "p": 1e-4, "q": 1e-4, "tilt_x": 1e-5, "tilt_y": 1e-5, "alpha_zero": 1e-5,
     "beta_zero": 1e-5, "beta_scale": 1e-5, "backlash": 1e-5, "time_offset": 1e-4,
 }  # fmt: skip
+#: Central-difference steps of the pose parameters: rotation (rad) about the world axes, translation (m).
+_POSE_STEP = (1e-5, 1e-5, 1e-5, 1e-4, 1e-4, 1e-4)
 #: Never determined by a cloud, whatever the data: held always.
 STRUCTURAL = {
     "beta_zero": "a rotation of the whole cloud about the motor axis: not in the cloud's shape; it belongs to the "
@@ -139,6 +150,12 @@ class _State:
     rig: FloatArray  # full RigModel vector
     planes: list[_Plane]
     spheres: list[_Sphere]
+    rot: FloatArray  # (P, 3, 3): world_from_rig rotation of each sweep's pose (pose 0: the identity, fixed)
+    trans: FloatArray  # (P, 3): world_from_rig translation of each sweep's pose
+
+
+def _rotation(rotvec: FloatArray) -> FloatArray:
+    return np.asarray(Rotation.from_rotvec(rotvec).as_matrix(), dtype=np.float64)
 
 
 class Adjustment:
@@ -153,8 +170,19 @@ class Adjustment:
         nominal: RigModel,
         noise: NoiseModel,
         options: AdjustOptions,
+        which: IntArray | None = None,
+        poses: Sequence[FloatArray] | None = None,
     ) -> None:
+        """``which``: the sweep (pose) of every beam; ``poses``: the initial 4x4 world_from_rig of each
+        sweep (the first is the world: the identity, held). Without them, one pose for all beams."""
         self.obs = obs
+        self.which = np.zeros(len(obs), dtype=np.intp) if which is None else np.asarray(which, dtype=np.intp)
+        if self.which.shape != (len(obs),):
+            raise CalibrationError("one sweep index per observation")
+        mats = [np.eye(4)] if poses is None else [np.asarray(t, dtype=np.float64) for t in poses]
+        if not np.allclose(mats[0], np.eye(4)) or self.which.max(initial=0) >= len(mats):
+            raise CalibrationError("the first sweep's pose is the world (the identity); one pose per sweep")
+        self.n_poses = len(mats)
         self.artefact = artefact
         self.nominal = nominal
         self.noise = noise
@@ -162,50 +190,78 @@ class Adjustment:
         rng = np.random.default_rng(options.seed)
         pl = []
         for seg in planes:
-            idx = seg.index
-            if idx.size > options.max_plane_points:
-                idx = np.sort(rng.choice(idx, options.max_plane_points, replace=False))
-            pl.append(_Plane.make(idx, seg.normal, seg.offset))
+            pl.append(_Plane.make(self._cap(seg.index, rng), seg.normal, seg.offset))
         sp = []
         for ss in spheres:
             spec = artefact.spheres[ss.artefact_index]
             sp.append(_Sphere(ss.index, ss.center.copy(), ss.radius, ss.artefact_index, spec.diameter_m / 2,
                               spec.u_diameter_m / 2))  # fmt: skip
-        self.state = _State(nominal.vector(), pl, sp)
+        self.state = _State(
+            nominal.vector(), pl, sp, np.stack([m[:3, :3] for m in mats]), np.stack([m[:3, 3] for m in mats])
+        )
         self.sphere_slot: dict[int, int] = {}
         self.distances: list[DistanceSpec] = []
         self._trim_silhouettes()
         self._sigma: list[FloatArray] = []
         self.free: list[str] = [n for n in RigModel.NAMES if n not in STRUCTURAL]
+        #: Covariance of the pose parameters after :meth:`covariance` (6 per sweep after the first:
+        #: rotation about the world axes in rad, then translation in m).
+        self.pose_covariance: FloatArray = np.zeros((self.n_pose_params, self.n_pose_params))
 
     # -- geometry -------------------------------------------------------------------------
-    def _members(self) -> list[IntArray]:
-        return [p.index for p in self.state.planes] + [s.index for s in self.state.spheres]
+    @property
+    def n_pose_params(self) -> int:
+        """Unknowns of the poses: 6 per sweep after the first (rotation, translation)."""
+        return 6 * (self.n_poses - 1)
 
-    def _points(self, vec: FloatArray, idx: IntArray) -> FloatArray:
+    def _cap(self, idx: IntArray, rng: np.random.Generator) -> IntArray:
+        """At most ``max_plane_points`` beams of a plane from each sweep's pose (a random subset)."""
+        cap = self.options.max_plane_points
+        if self.n_poses == 1:
+            return idx if idx.size <= cap else np.sort(rng.choice(idx, cap, replace=False))
+        parts = []
+        for k in range(self.n_poses):
+            own = idx[self.which[idx] == k]
+            parts.append(own if own.size <= cap else rng.choice(own, cap, replace=False))
+        return np.sort(np.concatenate(parts))
+
+    def _world(self, st: _State, idx: IntArray, org: FloatArray, d: FloatArray | None = None) -> tuple[FloatArray, ...]:
+        """Rig-frame points (or ray origins and directions) of beams ``idx`` in the world (their sweep's pose)."""
+        if self.n_poses == 1:
+            return (org,) if d is None else (org, d)
+        w = self.which[idx]
+        rot = st.rot[w]
+        o = np.einsum("nij,nj->ni", rot, org) + st.trans[w]
+        return (o,) if d is None else (o, np.einsum("nij,nj->ni", rot, d))
+
+    def world_points(self, st: _State, idx: IntArray | None = None) -> FloatArray:
+        """The beams mapped by the state's rig and placed by their sweep's pose."""
         o = self.obs
-        return RigModel.from_vector(vec).forward(o.l[idx], o.alpha[idx], o.beta[idx], o.omega[idx])
+        i = np.arange(len(o)) if idx is None else idx
+        x = RigModel.from_vector(st.rig).forward(o.l[i], o.alpha[i], o.beta[i], o.omega[i])
+        return self._world(st, i, x)[0]
 
-    def _point_jacobian(self, vec: FloatArray, idx: IntArray, names: list[str]) -> tuple[FloatArray, FloatArray]:
-        x = self._points(vec, idx)
-        jac = np.empty((idx.size, 3, len(names)))
-        for k, name in enumerate(names):
-            j = RigModel.NAMES.index(name)
-            h = _STEP[name]
-            up, dn = vec.copy(), vec.copy()
-            up[j] += h
-            dn[j] -= h
-            jac[:, :, k] = (self._points(up, idx) - self._points(dn, idx)) / (2 * h)
-        return x, jac
+    def _nudged(self, st: _State, k: int, h: float) -> _State:
+        """The state with every pose after the first moved by ``h`` along pose parameter ``k`` (each
+        beam depends on its own sweep's pose only, so one nudge gives every beam's derivative)."""
+        rot, trans = st.rot.copy(), st.trans.copy()
+        if k < 3:
+            rot[1:] = np.einsum("ij,njk->nik", _rotation(h * np.eye(3)[k]), rot[1:])
+        else:
+            trans[1:, k - 3] += h
+        return _State(st.rig, st.planes, st.spheres, rot, trans)
 
-    def _los(self, vec: FloatArray, idx: IntArray, surf: _Plane | _Sphere) -> tuple[FloatArray, ...]:
+    def _los(
+        self, vec: FloatArray, idx: IntArray, surf: _Plane | _Sphere, st: _State | None = None
+    ) -> tuple[FloatArray, ...]:
         """Residuals in the raw range reading: the reported range minus the range the rig model
         predicts for a beam meeting the surface, ``l - (t - k0) / (1 + k1)`` (so rescaling the
         cloud cannot shrink them). Also ``t``, ``cos(incidence)``, the beam directions and origins.
-        Near grazing incidence ``cos`` is held at :data:`MIN_COS` / 2 (such beams are not used)."""
+        Near grazing incidence ``cos`` is held at :data:`MIN_COS` / 2 (such beams are not used).
+        Rays are placed in the world by their sweep's pose in ``st`` (default: the current state)."""
         o = self.obs
         m = RigModel.from_vector(vec)
-        org, d = m.rays(o.alpha[idx], o.beta[idx], o.omega[idx])
+        org, d = self._world(self.state if st is None else st, idx, *m.rays(o.alpha[idx], o.beta[idx], o.omega[idx]))
         if isinstance(surf, _Plane):
             nd = d @ surf.normal
             cos = np.abs(nd)
@@ -220,24 +276,34 @@ class Adjustment:
             cos = s / surf.radius
         return o.l[idx] - (t - m.k0) / (1.0 + m.k1), t, cos, d, org
 
-    def _surface_residuals(self, st: _State, vec: FloatArray, names: list[str]) -> list[tuple[FloatArray, ...]]:
+    def _surface_residuals(
+        self, st: _State, vec: FloatArray, names: list[str], poses: bool = True
+    ) -> list[tuple[FloatArray, ...]]:
         """Per surface: residuals (N,), d(res)/d(surface params) (N,k), d(res)/d(rig) (N,F), and each
         residual's standard deviation under the noise model (N,): the range noise plus the lateral
-        noise (``l sigma_alpha``, ``(l sin(alpha) + p) sigma_beta``) times ``tan(incidence)``."""
+        noise (``l sigma_alpha``, ``(l sin(alpha) + p) sigma_beta``) times ``tan(incidence)``; and
+        d(res)/d(the beam's own pose) (N, 6; zero for the first sweep; no columns with one pose or
+        ``poses=False``)."""
         o = self.obs
         scale = 1.0 + vec[RigModel.NAMES.index("k1")]
         out: list[tuple[FloatArray, ...]] = []
         surfaces: list[_Plane | _Sphere] = [*st.planes, *st.spheres]
         for surf in surfaces:
             idx = surf.index
-            res, t, cos, d, org = self._los(vec, idx, surf)
+            res, t, cos, d, org = self._los(vec, idx, surf, st)
             jr = np.empty((idx.size, len(names)))
             for k, name in enumerate(names):
                 j = RigModel.NAMES.index(name)
                 up, dn = vec.copy(), vec.copy()
                 up[j] += _STEP[name]
                 dn[j] -= _STEP[name]
-                jr[:, k] = (self._los(up, idx, surf)[0] - self._los(dn, idx, surf)[0]) / (2 * _STEP[name])
+                jr[:, k] = (self._los(up, idx, surf, st)[0] - self._los(dn, idx, surf, st)[0]) / (2 * _STEP[name])
+            jp = np.zeros((idx.size, 6 if self.n_poses > 1 and poses else 0))
+            for k in range(jp.shape[1]):
+                h = _POSE_STEP[k]
+                up_s, dn_s = self._nudged(st, k, h), self._nudged(st, k, -h)
+                jp[:, k] = (self._los(vec, idx, surf, up_s)[0] - self._los(vec, idx, surf, dn_s)[0]) / (2 * h)
+            jp[self.which[idx] == 0] = 0.0
             if isinstance(surf, _Plane):
                 nd = d @ surf.normal
                 nd = np.where(np.abs(nd) < MIN_COS / 2, np.copysign(MIN_COS / 2, nd), nd)
@@ -252,18 +318,20 @@ class Adjustment:
             lateral = (o.l[idx] * self.noise.sigma_alpha) ** 2 + (
                 (o.l[idx] * np.sin(o.alpha[idx]) + self.nominal.p) * self.noise.sigma_beta
             ) ** 2
-            out.append((res, js, jr, np.sqrt(self.noise.sigma_l**2 + tan2 * lateral)))
+            out.append((res, js, jr, np.sqrt(self.noise.sigma_l**2 + tan2 * lateral), jp))
         return out
 
     def _init_sigma(self) -> None:
         """Each residual's standard deviation from the raw readings' noise (Eq. 5 of seed 003)."""
-        surf = self._surface_residuals(self.state, self.state.rig, [])
+        surf = self._surface_residuals(self.state, self.state.rig, [], poses=False)
         self._sigma = [t[3] for t in surf]
 
     # -- normal equations -----------------------------------------------------------------
     def _system(self, st: _State, names: list[str]) -> tuple[FloatArray, sparse.csr_matrix, list[FloatArray]]:
-        """Weighted residuals, the sparse Jacobian over (rig names, planes, spheres), metric residuals."""
+        """Weighted residuals, the sparse Jacobian over (rig names, poses after the first, planes,
+        spheres), metric residuals. A beam's pose columns are its own sweep's six (none for the first)."""
         nr = len(names)
+        npose = self.n_pose_params
         surf = self._surface_residuals(st, st.rig, names)
         rows: list[IntArray] = []
         cols: list[IntArray] = []
@@ -271,25 +339,27 @@ class Adjustment:
         res_all: list[FloatArray] = []
         metric: list[FloatArray] = []
         row0 = 0
-        col = nr
+        col = nr + npose
         n_pl = len(st.planes)
-        for (res, js, jr, _), sig in zip(surf, self._sigma, strict=True):
+        surfaces: list[_Plane | _Sphere] = [*st.planes, *st.spheres]
+        for (res, js, jr, _, jp), sig, sf in zip(surf, self._sigma, surfaces, strict=True):
             n = res.size
             w = 1.0 / sig
             r_idx = np.arange(row0, row0 + n)
-            blocks: list[FloatArray] = [jr * w[:, None], js * w[:, None]]
-            block = np.hstack(blocks)
-            width = block.shape[1] - nr
-            c_idx = np.r_[np.arange(nr), np.arange(col, col + width)]
+            block = np.hstack([jr * w[:, None], jp * w[:, None], js * w[:, None]])
+            width = js.shape[1]
+            c_idx = np.tile(np.r_[np.arange(nr), np.zeros(jp.shape[1], np.intp), np.arange(col, col + width)], (n, 1))
+            if jp.shape[1]:  # the beam's own pose: columns nr + 6 (sweep - 1) + k (sweep 0: zeros, any column)
+                c_idx[:, nr : nr + 6] = nr + 6 * np.maximum(self.which[sf.index] - 1, 0)[:, None] + np.arange(6)
             rows.append(np.repeat(r_idx, block.shape[1]))
-            cols.append(np.tile(c_idx, n))
+            cols.append(c_idx.ravel())
             vals.append(block.ravel())
             res_all.append(res * w)
             metric.append(res)
             row0 += n
             col += width
         n_unknown = col
-        sphere_col0 = nr + 3 * n_pl
+        sphere_col0 = nr + npose + 3 * n_pl
         # priors: the spheres' calibrated radii
         for k, sp in enumerate(st.spheres):
             rows.append(np.array([row0]))
@@ -320,6 +390,11 @@ class Adjustment:
         for k, name in enumerate(names):
             rig[RigModel.NAMES.index(name)] += delta[k]
         col = len(names)
+        rot, trans = st.rot.copy(), st.trans.copy()
+        for k in range(1, self.n_poses):
+            rot[k] = _rotation(delta[col : col + 3]) @ rot[k]
+            trans[k] = trans[k] + delta[col + 3 : col + 6]
+            col += 6
         planes = []
         for pl in st.planes:
             du, dv, dd = delta[col : col + 3]
@@ -332,7 +407,7 @@ class Adjustment:
             spheres.append(_Sphere(sp.index, c, sp.radius + delta[col + 3], sp.artefact_index, sp.radius_known,
                                    sp.u_radius))  # fmt: skip
             col += 4
-        return _State(rig, planes, spheres)
+        return _State(rig, planes, spheres, rot, trans)
 
     def solve(self, names: list[str]) -> tuple[FloatArray, sparse.csr_matrix, int]:
         """Levenberg-Marquardt from the current state; returns the final weighted residuals, Jacobian
@@ -379,8 +454,7 @@ class Adjustment:
         their noise and bias the range) lies within that reach of a second surface (corners,
         edges). A plane that only gathered the bends of a miscalibrated cloud loses its points and
         is dropped; planes are subsampled again, grazing beams and silhouettes left out."""
-        o = self.obs
-        x = RigModel.from_vector(self.state.rig).forward(o.l, o.alpha, o.beta, o.omega)
+        x = self.world_points(self.state)
         reach = max_sigma * self.noise.sigma_l
         live = list(self.state.planes)
         while True:
@@ -405,13 +479,10 @@ class Adjustment:
         for k, pl in enumerate(live):
             idx = np.flatnonzero(ok & (nearest == k))
             _, _, cos, _, _ = self._los(self.state.rig, idx, pl)
-            idx = idx[cos >= MIN_COS]
-            if idx.size > self.options.max_plane_points:
-                idx = np.sort(rng.choice(idx, self.options.max_plane_points, replace=False))
-            planes.append(_Plane.make(idx, pl.normal, pl.offset))
+            planes.append(_Plane.make(self._cap(idx[cos >= MIN_COS], rng), pl.normal, pl.offset))
         for k, sp in enumerate(self.state.spheres):
             sp.index = np.flatnonzero(ok & (nearest == len(live) + k))
-        self.state = _State(self.state.rig, planes, self.state.spheres)
+        self.state = _State(self.state.rig, planes, self.state.spheres, self.state.rot, self.state.trans)
         self._trim_silhouettes()
         self._init_sigma()
 
@@ -433,7 +504,7 @@ class Adjustment:
             raise DetectionError(
                 f"no surface keeps {MIN_SURFACE_BEAMS} usable beams (grazing beams and silhouettes are not used)"
             )
-        self.state = _State(self.state.rig, planes, spheres)
+        self.state = _State(self.state.rig, planes, spheres, self.state.rot, self.state.trans)
         self.sphere_slot = {sp.artefact_index: k for k, sp in enumerate(spheres)}
         self.distances = [d for d in self.artefact.distances if d.a in self.sphere_slot and d.b in self.sphere_slot]
 
@@ -500,6 +571,8 @@ class Adjustment:
         except np.linalg.LinAlgError:
             raise CalibrationError("the normal matrix is singular after holding the undetermined parameters") from None
         nr = len(names)
+        npose = self.n_pose_params
+        self.pose_covariance = inv[nr : nr + npose, nr : nr + npose] * max(1.0, s0sq)
         return inv[:nr, :nr] * max(1.0, s0sq), s0sq, dof
 
     def surface_summary(

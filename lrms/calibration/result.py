@@ -45,6 +45,35 @@ class SurfaceFit:
 
 
 @dataclass(frozen=True)
+class PoseFit:
+    """The adjusted pose of one sweep (``--poses separate``): ``world_from_rig`` (4x4; the world is
+    the first sweep's rig frame, whose pose is the identity and held) and the standard deviations
+    of its rotation about the world's x, y, z (rad) and of its translation (m), zero for the first."""
+
+    sweep: int
+    world_from_rig: FloatArray
+    std: tuple[float, ...] = (0.0,) * 6
+    source: str = ""
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "sweep": self.sweep,
+            "source": self.source,
+            "world_from_rig": np.asarray(self.world_from_rig).tolist(),
+            "std_rotation_rad": list(self.std[:3]),
+            "std_translation_m": list(self.std[3:]),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> PoseFit:
+        t = np.asarray(d["world_from_rig"], dtype=np.float64)
+        if t.shape != (4, 4):
+            raise ValueError(f"a pose's world_from_rig is 4x4, got {t.shape}")
+        std = tuple(float(x) for x in [*d.get("std_rotation_rad", [0.0] * 3), *d.get("std_translation_m", [0.0] * 3)])
+        return cls(int(d["sweep"]), t, std, str(d.get("source", "")))
+
+
+@dataclass(frozen=True)
 class Identifiability:
     """What the data could determine.
 
@@ -96,6 +125,8 @@ class CalibrationResult:
     sources: tuple[str, ...] = ()
     created: str = ""
     software_version: str = ""
+    #: One per sweep when the sweeps were adjusted with separate poses (empty: one shared pose).
+    poses: tuple[PoseFit, ...] = ()
 
     def __post_init__(self) -> None:
         cov = np.asarray(self.covariance, dtype=np.float64)
@@ -151,6 +182,7 @@ class CalibrationResult:
             "artefact": self.artefact,
             "sources": list(self.sources),
             "table": self.table(),
+            **({"poses": [p.to_dict() for p in self.poses]} if self.poses else {}),
         }
 
     def to_json(self, indent: int | None = 2) -> str:
@@ -173,6 +205,7 @@ class CalibrationResult:
                 sources=tuple(str(s) for s in d.get("sources", ())),
                 created=str(d.get("created", "")),
                 software_version=str(d.get("software_version", "")),
+                poses=tuple(PoseFit.from_dict(p) for p in d.get("poses", ())),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise CalibrationError(f"malformed calibration: {exc}") from None

@@ -8,7 +8,9 @@ the log's rig model as the nominal one (:func:`service.replay.log_readings`). AR
 saw: ``{"planes": true, "spheres": [{"diameter_m": 0.2}, ...], "distances_m": [{"a": 0, "b": 1,
 "distance_m": 1.0}]}``. Prints the parameters with their standard deviations and the
 identifiability report (or the whole result as JSON with ``--json``); ``--out`` writes the
-calibration file that ``lrms fit --calibration`` applies; ``--upload URL`` posts it to a service
+calibration file that ``lrms fit --calibration`` applies; ``--poses separate`` adjusts each
+sweep with its own unknown rig pose (the rig or the artefact moved between sweeps); ``--upload
+URL`` posts it to a service
 (``POST /api/v1/calibrations``, the admin token from ``--token`` or ``$LRMS_ADMIN_TOKEN``). See
 docs/calibration.md.
 """
@@ -32,6 +34,19 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", metavar="CAL.json", default=None, help="write the calibration here")
     parser.add_argument("--json", action="store_true", help="print the whole result as JSON")
     parser.add_argument("--p", type=float, default=0.1, help="nominal inner parameter p of the clouds' mapping, m")
+    parser.add_argument(
+        "--poses",
+        choices=("shared", "separate"),
+        default="shared",
+        help="shared: the sweeps were taken from one rig pose (default); separate: the rig (or the whole artefact) "
+        "moved between sweeps, each sweep gets its own unknown pose (registered by three or more common spheres)",
+    )
+    parser.add_argument(
+        "--plane-points",
+        type=int,
+        default=20000,
+        help="beams per plane (and per pose) the adjustment uses, a random subset (default 20000)",
+    )
     parser.add_argument("--sigma-l-mm", type=float, default=None, help="range noise (default 11.67 mm, seed 003)")
     parser.add_argument(
         "--upload", metavar="URL", default=None, help="post the calibration to this service (base URL or the endpoint)"
@@ -45,7 +60,15 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from lrms.calibration import Artefact, ArtefactError, CalibrationError, Observations, calibrate
+    from lrms.calibration import (
+        AdjustOptions,
+        Artefact,
+        ArtefactError,
+        CalibrationError,
+        CalibrationOptions,
+        Observations,
+        calibrate,
+    )
     from lrms.covariance import NoiseModel
     from lrms.kinematics import RigModel
     from service.pointio import read_points
@@ -79,7 +102,10 @@ def run(args: argparse.Namespace) -> int:
             "clouds (mapped with the nominal Eq. 1, --p) and raw logs recorded with another rig model cannot be mixed"
         )
     noise = NoiseModel() if args.sigma_l_mm is None else NoiseModel(sigma_l=args.sigma_l_mm / 1e3)
-    result = calibrate(sweeps, artefact, nominal=nominal, noise=noise)
+    if args.plane_points < 100:
+        raise CalibrationError(f"--plane-points must be at least 100, got {args.plane_points}")
+    options = CalibrationOptions(adjust=AdjustOptions(max_plane_points=args.plane_points))
+    result = calibrate(sweeps, artefact, nominal=nominal, noise=noise, options=options, poses=args.poses)
     if args.out:
         Path(args.out).write_text(result.to_json() + "\n", encoding="utf-8")
     if args.json:
@@ -133,6 +159,8 @@ def upload(body: str, url: str, token: str | None, name: str, comment: str, acti
 
 
 def _print_text(d: dict[str, Any], out: str | None) -> None:
+    import numpy as np
+
     print(f"{'parameter':12s} {'value':>12s} {'std':>10s}  unit")
     for row in d["table"]:
         std = "held" if row["held"] else f"{row['std']:10.4g}"
@@ -148,5 +176,17 @@ def _print_text(d: dict[str, Any], out: str | None) -> None:
         print(f"  held {name}: {why}")
     for name, why in ident["weak"].items():
         print(f"  weak {name}: {why}")
+    for pose in d.get("poses", []):
+        t = pose["world_from_rig"]
+        rot = pose["std_rotation_rad"]
+        tr = pose["std_translation_m"]
+        print(
+            f"pose of sweep {pose['sweep'] + 1}: translation ({t[0][3]:.4f}, {t[1][3]:.4f}, {t[2][3]:.4f}) m"
+            + (
+                f" (std {1e3 * max(tr):.3f} mm, rotation std {np.rad2deg(max(rot)):.4f} deg)"
+                if pose["sweep"]
+                else " (the world: held)"
+            )
+        )
     if out:
         print(f"calibration written to {out}")
