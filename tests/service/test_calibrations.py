@@ -293,10 +293,12 @@ def test_calibrate_reads_a_raw_log_of_the_simulated_rig_and_uploads(
     printed = json.loads(out.out)
     assert printed["sources"] == [str(raw)]
     std = printed["std"]
-    # within 4 of their reported std (three parameters at once; and on a loaded machine the motor time stamps
-    # smear, which the adjustment's std leaves out: k0 was 3.3 std off once at load 4-5, docs/service.md)
+    # within 4 of their reported std (three parameters at once). On a loaded machine the motor time stamps smear
+    # (docs/service.md, known limits), which widens the spheres and biases k0: -1.0 and -1.2 mm (4 std) at load 4-5,
+    # +0.08 mm idle; so k0 may also be within 1.5 mm of the truth (the uncalibrated error is 25 mm)
     for name, true in (("k0", TRUE_RIG.k0), ("tilt_x", TRUE_RIG.tilt_x), ("alpha_zero", TRUE_RIG.alpha_zero)):
-        assert abs(printed["model"][name] - true) <= 4 * std[name], (name, printed["model"][name], std[name])
+        err, tol = abs(printed["model"][name] - true), 4 * std[name]
+        assert err <= (max(tol, 1.5e-3) if name == "k0" else tol), (name, printed["model"][name], std[name])
     assert f"calibration stored as {active['id']} (active)" in out.err
     assert active["name"] == "room" and active["calibration"]["model"] == printed["model"]
 
