@@ -13,6 +13,7 @@ password, when there is one, best comes from ``PGPASSWORD`` or ``~/.pgpass`` rat
 from __future__ import annotations
 
 import sqlite3
+import time
 from pathlib import Path
 from typing import Any
 
@@ -86,13 +87,27 @@ def _sqlite(u: URL) -> Engine:
         kwargs["poolclass"] = StaticPool
     engine = create_engine(u, **kwargs)
 
+    def _set_wal(cur: sqlite3.Cursor) -> None:
+        # switching a new file to WAL needs it unlocked for a moment, and SQLite answers "database is locked"
+        # at once (no busy handler) while another process is creating or migrating it: retry, as long as
+        # a busy writer would be waited for
+        deadline = time.monotonic() + SQLITE_BUSY_TIMEOUT_S
+        while True:
+            try:
+                cur.execute("PRAGMA journal_mode=WAL")
+                return
+            except sqlite3.OperationalError as exc:
+                if "locked" not in str(exc) or time.monotonic() > deadline:
+                    raise
+                time.sleep(0.02)
+
     @event.listens_for(engine, "connect")
     def _connect(dbapi_conn: sqlite3.Connection, record: Any) -> None:
         dbapi_conn.isolation_level = None  # the driver's own BEGIN off: ours below
         cur = dbapi_conn.cursor()
         try:
             if not memory:
-                cur.execute("PRAGMA journal_mode=WAL")
+                _set_wal(cur)
             cur.execute("PRAGMA synchronous=NORMAL")
             cur.execute("PRAGMA foreign_keys=ON")
             cur.execute(f"PRAGMA busy_timeout={int(SQLITE_BUSY_TIMEOUT_S * 1000)}")
