@@ -9,6 +9,7 @@ from numpy.typing import NDArray
 from lrms.kinematics import RigCalibration, forward
 from service.sweep import GapCounter, ScanRecord, SweepError, beam_interval_us, interpolate_angle, map_sweep
 from service.timesync import ClockSync
+from tests.service.test_calibrated_mapping import ALL_TERMS
 
 HOST0_NS = 1_763_700_000_000_000_000
 DEV0_US = 4_294_000_000  # close to the 32-bit wrap: it wraps during the sweep
@@ -186,19 +187,7 @@ def test_the_nominal_rig_model_maps_bit_for_bit_as_eq1() -> None:
 
 
 def _full_model() -> dict[str, float]:
-    return {
-        "p_m": 0.103,
-        "range_offset_m": 0.015,
-        "range_scale_ppm": 800.0,
-        "q_m": -0.004,
-        "tilt_x_deg": 0.2,
-        "tilt_y_deg": -0.15,
-        "alpha_zero_deg": 0.1,
-        "beta_zero_deg": 0.25,
-        "motor_scale_ppm": -700.0,
-        "backlash_deg": 0.08,
-        "time_offset_s": 0.004,
-    }
+    return dict(ALL_TERMS)  # every [kinematics] term, as the calibrated-mapping test uses them
 
 
 def test_map_sweep_applies_every_term_of_the_rig_model() -> None:
