@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import argparse
 
+from service.cli._recipes import add_store_arguments, recipe_store
+
 HELP = "store a recipe from a TOML file in the service's database (new, or its next version)"
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("file", metavar="FILE.toml", help="the recipe (as GET /api/v1/recipes/NAME.toml gives it)")
-    parser.add_argument("--config", metavar="RIG.toml", help="rig configuration (default: the simulated seed 003 rig)")
-    parser.add_argument("--data", metavar="DIR", help="storage folder (overrides [storage] dir)")
+    add_store_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -18,11 +19,8 @@ def run(args: argparse.Namespace) -> int:
 
     from pydantic import ValidationError
 
-    from service.config import load_config
     from service.errors import RequestFieldError
     from service.recipes import Recipe, from_toml
-    from service.recipestore import RecipeStore
-    from service.store import Store
 
     try:
         recipe = from_toml(Path(args.file).read_text(encoding="utf-8"))
@@ -30,10 +28,7 @@ def run(args: argparse.Namespace) -> int:
         raise RequestFieldError(
             [(tuple(e["loc"]), str(e["msg"]).removeprefix("Value error, ")) for e in exc.errors()]
         ) from None
-    cfg = load_config(args.config, storage_dir=args.data)
-    db = Store(cfg.storage.db_url, cfg.storage.rig_id)  # opens (and migrates) the result database
-    store = RecipeStore(db.engine)
-    try:
+    with recipe_store(args) as store:
         if not store.exists(recipe.name):
             out = store.create(recipe)
             print(f"{out.name}: created, version {out.version}")
@@ -45,6 +40,3 @@ def run(args: argparse.Namespace) -> int:
         out = store.update(recipe)
         print(f"{out.name}: version {out.version}")
         return 0
-    finally:
-        store.close()
-        db.close()
