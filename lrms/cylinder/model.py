@@ -220,12 +220,20 @@ def estimate_normals(points: ArrayLike, k: int = 24, chunk: int = 50_000) -> Flo
         raise FitError(f"need at least 3 points for normals, got {n}")
     kk = int(min(max(k, 3), n))
     tree = cKDTree(pts)
+    cols = np.ascontiguousarray(pts.T)
     out = np.empty_like(pts)
     for s in range(0, n, chunk):
         _, idx = tree.query(pts[s : s + chunk], k=kk)
-        nb = pts[idx]
-        nb = nb - nb.mean(axis=1, keepdims=True)
-        cov = np.einsum("nki,nkj->nij", nb, nb)
+        # the neighbourhoods' covariances from the six second moments, by coordinate (an
+        # ``(n, k, 3)`` einsum took three times as long)
+        x = cols[:, idx]  # (3, n, k)
+        m = x.mean(axis=-1)
+        cov = np.empty((idx.shape[0], 3, 3))
+        for i in range(3):
+            for j in range(i, 3):
+                c = np.einsum("nk,nk->n", x[i], x[j]) / kk - m[i] * m[j]
+                cov[:, i, j] = c
+                cov[:, j, i] = c
         _, vecs = np.linalg.eigh(cov)
         out[s : s + chunk] = vecs[:, :, 0]
     return out
