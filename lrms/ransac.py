@@ -236,8 +236,8 @@ class PlaneModel:
         res = np.abs(params[:, :3] @ d[:, :3].T - params[:, 3:4])
         if cls.normal_weight > 0 and d.shape[1] >= 6:
             near = res < threshold
-            b, m = np.nonzero(near)
-            cosang = np.minimum(np.abs(np.einsum("ki,ki->k", params[b, :3], d[m, 3:6])), 1.0)
+            # all cosines by one (B, 3) x (3, m) product; the arccos only where it can matter
+            cosang = np.minimum(np.abs(params[:, :3] @ d[:, 3:6].T)[near], 1.0)
             res[near] += cls.normal_weight * np.arccos(cosang)
             res[~near] = np.inf
         return np.asarray(res, dtype=np.float64)

@@ -71,7 +71,7 @@ def grazing_weighted_fit(
     try:
         for k in range(rounds):
             use = work if k < rounds - 1 else np.arange(idx.size)
-            part = sub.subset(use)
+            part = sub if use.size == idx.size else sub.subset(use)
             sig = grazing_sigmas(cyl, part, sigma_lat)
             weighted = Rays(part.origins, part.dirs, part.ranges, sig, part.sigma_perp)
             # a large cloud's last round starts next to its optimum: a few LM steps suffice
@@ -83,11 +83,12 @@ def grazing_weighted_fit(
     if not lo <= cyl.radius <= hi:
         return fit
     sig = grazing_sigmas(cyl, sub, sigma_lat)
-    jac = LosProblem(Rays(sub.origins, sub.dirs, sub.ranges, sig, sub.sigma_perp)).jacobian(cyl)
+    beams = LosProblem(sub)
+    jac = beams.reweighted(sig).jacobian(cyl)
     var = np.concatenate([np.square(sub.sigma_l / sig), np.ones(idx.size)])
     a_inv = _covariance(jac)
     cov = a_inv @ (jac.T @ (var[:, None] * jac)) @ a_inv
-    plain = LosProblem(sub).linearise(cyl, jacobian=False)
+    plain = beams.linearise(cyl, jacobian=False)
     m = idx.size
     return replace(
         fit,

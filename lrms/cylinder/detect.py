@@ -135,10 +135,11 @@ class CylinderModel:
         res = np.abs(dist - r[:, None])
         if data.shape[1] >= 6:
             near = res < threshold
-            b, m = np.nonzero(near)
-            nrm = data[m, 3:6]
-            rn = np.einsum("ki,ki->k", x[m] - c[b], nrm) - xw[b, m] * np.einsum("ki,ki->k", w[b], nrm)
-            cosang = np.minimum(np.abs(rn) / np.maximum(dist[b, m], 1e-12), 1.0)
+            nrm = data[:, 3:6]
+            # rad . n = (x - c).n - ((x - c).w) (w.n), by (B, 3) x (3, m) products; the arccos
+            # only where it can matter
+            rn = (np.einsum("mi,mi->m", x, nrm)[None, :] - c @ nrm.T - xw * (w @ nrm.T))[near]
+            cosang = np.minimum(np.abs(rn) / np.maximum(dist[near], 1e-12), 1.0)
             res[near] += cls.normal_weight * np.arccos(cosang)
             res[~near] = np.inf
         return np.asarray(res, dtype=np.float64)

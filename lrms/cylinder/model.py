@@ -220,12 +220,49 @@ def estimate_normals(points: ArrayLike, k: int = 24, chunk: int = 50_000) -> Flo
         raise FitError(f"need at least 3 points for normals, got {n}")
     kk = int(min(max(k, 3), n))
     tree = cKDTree(pts)
+    cols = np.ascontiguousarray(pts.T)
     out = np.empty_like(pts)
     for s in range(0, n, chunk):
         _, idx = tree.query(pts[s : s + chunk], k=kk)
-        nb = pts[idx]
-        nb = nb - nb.mean(axis=1, keepdims=True)
-        cov = np.einsum("nki,nkj->nij", nb, nb)
-        _, vecs = np.linalg.eigh(cov)
-        out[s : s + chunk] = vecs[:, :, 0]
+        # the neighbourhoods' covariances from the six second moments, by coordinate (an
+        # ``(n, k, 3)`` einsum took three times as long)
+        x = cols[:, idx]  # (3, n, k)
+        m = x.mean(axis=-1)
+        cov = np.empty((idx.shape[0], 3, 3))
+        for i in range(3):
+            for j in range(i, 3):
+                c = np.einsum("nk,nk->n", x[i], x[j]) / kk - m[i] * m[j]
+                cov[:, i, j] = c
+                cov[:, j, i] = c
+        out[s : s + chunk] = smallest_eigenvectors(cov)
     return out
+
+
+def smallest_eigenvectors(cov: FloatArray) -> FloatArray:
+    """Unit eigenvectors ``(n, 3)`` of the smallest eigenvalues of symmetric ``(n, 3, 3)``
+    matrices, in closed form (several times faster than ``np.linalg.eigh`` on many small
+    matrices): the eigenvalue by the trigonometric solution of the characteristic cubic, the
+    vector as the largest cross product of two rows of ``A - lambda I``. Where the two smallest
+    eigenvalues coincide the vector is any one of their plane (as is ``eigh``'s)."""
+    a00, a11, a22 = cov[:, 0, 0], cov[:, 1, 1], cov[:, 2, 2]
+    a01, a02, a12 = cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 2]
+    q = (a00 + a11 + a22) / 3.0
+    b00, b11, b22 = a00 - q, a11 - q, a22 - q
+    p2 = (b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)) / 6.0
+    p = np.sqrt(np.maximum(p2, 1e-100))  # p**3 stays a normal number
+    det = b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02)
+    half = np.clip(det / (2.0 * p * p * p), -1.0, 1.0)
+    lam = q + 2.0 * p * np.cos(np.arccos(half) / 3.0 + 2.0 * np.pi / 3.0)
+    m0 = np.stack([a00 - lam, a01, a02], axis=1)
+    m1 = np.stack([a01, a11 - lam, a12], axis=1)
+    m2 = np.stack([a02, a12, a22 - lam], axis=1)
+    cands = np.stack([np.cross(m0, m1), np.cross(m0, m2), np.cross(m1, m2)], axis=1)  # (n, 3, 3)
+    norms = np.einsum("nki,nki->nk", cands, cands)
+    best = np.argmax(norms, axis=1)
+    rows = np.arange(cov.shape[0])
+    vec = cands[rows, best]
+    nrm = np.sqrt(norms[rows, best])
+    bad = ~(nrm > 0)
+    vec[bad] = (1.0, 0.0, 0.0)  # an isotropic neighbourhood: no direction is preferred
+    nrm[bad] = 1.0
+    return np.asarray(vec / nrm[:, None], dtype=np.float64)

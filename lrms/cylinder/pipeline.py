@@ -67,6 +67,11 @@ def _radius_ok(cyl: Cylinder, opt: DetectOptions) -> bool:
 
 #: Radius offsets (in units of sigma_l) of the extra starts of the line-of-sight fit.
 MULTISTART = (-0.2, -0.1, 0.1, 0.2)
+#: Inliers (at most; a random subset of larger sets) on which the starts are compared.
+MULTISTART_WORK = 2000
+#: Inliers above which the winner's final solve on all of them is a few LM steps only: it starts
+#: next to its optimum, and :func:`~lrms.cylinder.bias.grazing_weighted_fit` refits from it.
+MULTISTART_FULL_STEPS = (10_000, 4)
 
 
 def _multistart(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: DetectOptions) -> CylinderFit:
@@ -76,10 +81,10 @@ def _multistart(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: DetectOption
     (the hit range varies like a square root of the radius there), so the likelihood has
     several local minima a few tenths of sigma_l apart; one LM run from the orthogonal fit's
     (biased) start does not always reach the best. The starts are compared on the same inliers
-    (a random subset of at most 5000 of them for large clouds), the winner is refined on all.
+    (a random subset of at most :data:`MULTISTART_WORK` of them), the winner is refined on all.
     """
     idx = fit.inliers
-    work = 5_000
+    work = MULTISTART_WORK
     sel = idx if idx.size <= work else np.sort(np.random.default_rng(2).choice(idx, work, replace=False))
     sub_pts, sub_rays = pts[sel], rays.subset(sel)
     sig = float(np.median(rays.sigma_l))
@@ -92,7 +97,8 @@ def _multistart(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: DetectOption
             continue
         if trial.chi2_dof < best_cost:
             best_cyl, best_cost = trial.cylinder, trial.chi2_dof
-    return refine_cylinder(pts, best_cyl, rays=rays, max_rounds=1)
+    big, steps = MULTISTART_FULL_STEPS
+    return refine_cylinder(pts, best_cyl, rays=rays, max_rounds=1, max_nfev=steps if idx.size > big else 200)
 
 
 def _los_fit(pts: FloatArray, rays: Rays, start: Cylinder, opt: DetectOptions, multistart: bool = True) -> CylinderFit:

@@ -289,9 +289,16 @@ def refine_cylinder(
     idx = np.flatnonzero(whitened_all(cyl) < gate) if use_los else np.arange(pts.shape[0])
     pick = np.random.default_rng(0)
 
+    last: list[tuple[IntArray, LosProblem]] = []  # the last line-of-sight problem and its rows
+
     def problem(sel: IntArray) -> LosProblem | OrthogonalProblem:
         if rays is not None:
-            return LosProblem(rays.subset(sel))
+            if last and last[0][0] is sel:
+                return last[0][1]
+            # ``sel`` is sorted and unique: as many rows as the beams are all of them, in order
+            los = LosProblem(rays if sel.size == rays.ranges.shape[0] else rays.subset(sel))
+            last[:] = [(sel, los)]
+            return los
         return OrthogonalProblem(pts[sel], sig)
 
     def solve_on(sel: IntArray, c: Cylinder) -> Cylinder:
