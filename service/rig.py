@@ -12,12 +12,8 @@ the sweep loop gets to it, so queueing delays in this process do not enter the c
 
 from __future__ import annotations
 
-import contextlib
-import json
 import logging
 import math
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -38,6 +34,7 @@ from service.config import RigConfig
 from service.errors import ServiceError
 from service.jobs import Cancelled, JobContext
 from service.models import APPROACH_SPEED_DEG_S, MeasurementRequest, ResolvedSweep, resolve_sweep
+from service.simproc import SimProcess
 from service.sweep import MappedSweep, MotionLimits, SweepError, SweepPlan, SweepRecorder, run_sweep
 
 log = logging.getLogger(__name__)
@@ -50,58 +47,6 @@ def open_scanner(url: str, **kw: Any) -> ScannerClient:
     if not isinstance(client, ScannerClient):
         raise ServiceError(f"scanner URL {url!r} did not give an LMS100 client")
     return client
-
-
-class SimProcess:
-    """The simulated rig in a child process (``python -m sim.rig``), served on 127.0.0.1."""
-
-    def __init__(self, config: RigConfig) -> None:
-        sim = config.sim
-        assert sim is not None
-        cmd = [
-            sys.executable,
-            "-m",
-            "sim.rig",
-            "--scene",
-            sim.scene,
-            "--sensor",
-            sim.sensor,
-            "--seed",
-            str(sim.seed),
-            "--cola",
-            sim.cola,
-            "--can",
-            sim.can,
-            "--node",
-            str(sim.node),
-            "--kinematics",
-            json.dumps(config.sim_kinematics),
-            "--noise",
-            json.dumps(config.noise.si()),
-        ]
-        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-        assert self.proc.stdout is not None
-        line = self.proc.stdout.readline()
-        if not line:
-            self.proc.wait(10)
-            raise ServiceError(f"the simulated rig did not start (exit status {self.proc.returncode})")
-        self.info: dict[str, Any] = json.loads(line)
-        self.scanner_url: str = self.info["scanner_url"]
-        self.motor_url: str = self.info["motor_url"]
-
-    def describe(self) -> dict[str, Any]:
-        return {**self.info, "pid": self.proc.pid, "alive": self.proc.poll() is None}
-
-    def close(self) -> None:
-        if self.proc.poll() is None:
-            with contextlib.suppress(OSError):
-                assert self.proc.stdin is not None
-                self.proc.stdin.close()
-            try:
-                self.proc.wait(15)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(5)
 
 
 def write_ply(path: Path, mapped: MappedSweep) -> None:
@@ -297,11 +242,15 @@ class Rig:
         self._described: tuple[float, dict[str, Any]] | None = None
 
     # -- life cycle -----------------------------------------------------------------------
-    def open(self) -> Rig:
+    def open(self, sim: SimProcess | None = None) -> Rig:
+        """Open the devices (and the simulated rig of a ``[sim]`` config). ``sim``: the simulated
+        rig's process, already started (:class:`SimProcess` with ``wait=False``); it is closed
+        with the rig, also when opening fails."""
         cfg = self.config
         try:
             if cfg.sim is not None and cfg.sim.process:
-                self.sim = SimProcess(cfg)
+                self.sim = sim if sim is not None else SimProcess(cfg, wait=False)
+                self.sim.wait_ready()
                 self.scanner_url, self.motor_url = self.sim.scanner_url, self.sim.motor_url
             elif cfg.sim is not None:
                 from sim.rig import SimulatedRig

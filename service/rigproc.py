@@ -324,11 +324,25 @@ def child_main(conn: Connection, config: RigConfig, log_level: str, status_perio
         raise SystemExit(128 + signum)
 
     signal.signal(signal.SIGTERM, terminated)
-    from service.rig import Rig
-
     outbox = _Outbox(conn)
+    sim = None
     try:
-        rig = Rig(config, fit_process=True).open()
+        if config.sim is not None and config.sim.process:
+            from service.simproc import SimProcess
+
+            sim = SimProcess(config, wait=False)  # the simulated rig boots while the rig code loads
+        from service.rig import Rig
+
+        rig = Rig(config, fit_process=True)
+    except BaseException as exc:
+        if sim is not None:
+            sim.close()
+        log.exception("the rig did not open")
+        outbox.send(StartupFailed(f"{type(exc).__name__}: {exc}"))
+        outbox.close()
+        return
+    try:
+        rig = rig.open(sim)
     except BaseException as exc:
         log.exception("the rig did not open")
         outbox.send(StartupFailed(f"{type(exc).__name__}: {exc}"))
