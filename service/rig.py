@@ -17,7 +17,7 @@ import math
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from urllib.parse import urlsplit, urlunsplit
 
 import numpy as np
@@ -29,13 +29,15 @@ from drivers.url import open_device
 from lrms.errors import FitError
 from lrms.kinematics import RigCalibration
 from service import fitting, mcaplog
-from service.calstore import StoredCalibration
 from service.config import RigConfig
 from service.errors import ServiceError
 from service.jobs import Cancelled, JobContext
 from service.models import APPROACH_SPEED_DEG_S, MeasurementRequest, ResolvedSweep, resolve_sweep
 from service.simproc import SimProcess
 from service.sweep import MappedSweep, MotionLimits, SweepError, SweepPlan, SweepRecorder, run_sweep
+
+if TYPE_CHECKING:  # imported where a calibration is applied: it loads lrms.calibration and scipy.optimize
+    from service.calstore import StoredCalibration
 
 log = logging.getLogger(__name__)
 
@@ -437,7 +439,11 @@ class Rig:
             raise SweepError(f"motor is faulted before the sweep: {fault.reason} (0x{fault.code:04X}); reset it first")
         plan = plan_from(sweep, min(APPROACH_SPEED_DEG_S, cfg.motor.max_velocity_deg_s))
         offset_ns = time.time_ns() - time.monotonic_ns()
-        calibration = None if ctx.calibration is None else StoredCalibration.from_payload(ctx.calibration)
+        calibration = None
+        if ctx.calibration is not None:
+            from service.calstore import StoredCalibration
+
+            calibration = StoredCalibration.from_payload(ctx.calibration)
 
         def clock_ns(t_monotonic: float) -> int:
             return round(t_monotonic * 1e9) + offset_ns
