@@ -1,12 +1,19 @@
 """Command-line start: ``lrms fit`` / ``lrms measure`` against ``python -c pass``, and the point readers.
 
-Run: ``.venv/bin/python -m bench.bench_cli_start [--reps 5]``. Part 1 starts each command as a
-fresh process (``sys.executable -m service.cli.main ...``, the way the tests do), interleaved
-``--reps`` times, and prints the least wall time and the least CPU time (user + system, from the
-process's own rusage: on a shared machine the CPU time moves less than the wall time) with
-their ratio to ``python -c pass`` measured in the same run. "fit imports" is the import work
-``lrms fit FILE`` does before it fits (the modules its ``run`` imports for a cylinder); "fit
-2k-point cloud" is the whole command on a 2,000-point cylinder (``--no-line-of-sight``).
+Run: ``.venv/bin/python -m bench.bench_cli_start [--reps 5] [--baseline-tree DIR]``. Part 1 starts
+each command as a fresh process (``sys.executable -m service.cli.main ...``, the way the tests
+do), interleaved ``--reps`` times, and prints the least wall time and the least CPU time (user +
+system, from the process's own rusage: on a shared machine the CPU time moves less than the wall
+time) with their ratio to ``python -c pass`` measured in the same run. "fit imports" is the
+import work ``lrms fit FILE`` does for a cylinder (the modules its ``run`` imports, and
+:mod:`scipy.ndimage`, which the fit imports on first use); "fit 2k-point cloud" is the whole
+command on a 2,000-point cylinder (``--no-line-of-sight``). "measure: until the sweep starts"
+runs ``lrms measure`` on the default simulated rig (at 45 deg/s, so the run is short) and
+takes the time from starting the process to the raw log's measurement record, which the rig
+process writes just before it commands the approach move (``service.rig.Rig._measure``); its
+CPU column is empty (the work is spread over four processes). With ``--baseline-tree`` (another
+checkout, e.g. ``git worktree add /tmp/startbase e86473c``) the lrms rows run on that tree too,
+interleaved, and the ratio baseline / this tree is printed.
 Part 2 reads 100,000-point clouds (.xyz, .csv with a header, ASCII and binary .ply) with
 :func:`service.pointio.read_points` and, as the baseline in the same run, with the readers it
 replaces (the line-by-line text parser, :mod:`plyfile` for every PLY).
@@ -16,6 +23,7 @@ Goal (issue 15): ``lrms fit`` and ``lrms measure`` start in <= 0.3 s.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import subprocess
 import sys
@@ -29,15 +37,19 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 FIT_IMPORTS = (
     "import service.cli.main, service.cli.fit, service.pointio, service.fitting, lrms.kinematics, "
-    "lrms.budget, lrms.covariance, lrms.cylinder, lrms.uncertainty"
+    "lrms.budget, lrms.covariance, lrms.cylinder, lrms.uncertainty, scipy.ndimage"
 )
+MEASURE_ARGS = ["measure", "--target", "cylinder", "--quiet", "--speed", "45"]
 
 
-def _run(cmd: list[str]) -> tuple[float, float]:
+def _env(tree: Path) -> dict[str, str]:
+    return dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONPATH=str(tree))
+
+
+def _run(cmd: list[str], tree: Path = REPO) -> tuple[float, float]:
     """Wall and CPU (user + system) seconds of one process."""
-    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(cmd, cwd=tree, env=_env(tree), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t0
     proc.returncode = os.waitstatus_to_exitcode(status)
@@ -45,6 +57,22 @@ def _run(cmd: list[str]) -> tuple[float, float]:
     if proc.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)} failed ({proc.returncode}): {err[-500:]}")
     return wall, usage.ru_utime + usage.ru_stime
+
+
+def _measure_start(tree: Path, tmp: Path) -> tuple[float, float]:
+    """Seconds from starting ``lrms measure`` to its raw log's measurement record (the sweep's
+    start); no CPU time (NaN)."""
+    from service.mcaplog import TOPIC_MEASUREMENT, read_log
+
+    out = tmp / "measure.mcap"
+    cmd = [sys.executable, "-m", "service.cli.main", *MEASURE_ARGS, "--data", str(tmp / "data"), "--out", str(out)]
+    t0 = time.time_ns()
+    proc = subprocess.run(cmd, cwd=tree, env=_env(tree), capture_output=True, text=True, check=False)
+    if not out.exists():  # a failed measurement still copies its raw log (the start is in it)
+        raise SystemExit(f"lrms measure on {tree} failed: {proc.stderr[-800:]}")
+    msgs, _ = read_log(out)
+    t_rec = next(m.log_time_ns for m in msgs if m.topic == TOPIC_MEASUREMENT)
+    return (t_rec - t0) / 1e9, math.nan
 
 
 def _cylinder_file(path: Path, n: int) -> None:
@@ -55,34 +83,50 @@ def _cylinder_file(path: Path, n: int) -> None:
     np.savetxt(path, pts, fmt="%.7f")
 
 
-def start_times(reps: int, tmp: Path) -> None:
+Case = tuple[str, Callable[[Path], tuple[float, float]], bool]
+
+
+def start_times(reps: int, tmp: Path, baseline: Path | None) -> None:
     small = tmp / "small.xyz"
     _cylinder_file(small, 2000)
-    lrms = [sys.executable, "-m", "service.cli.main"]
-    cases: list[tuple[str, list[str]]] = [
-        ("python -c pass (baseline)", [sys.executable, "-c", "pass"]),
-        ("python -c 'import numpy'", [sys.executable, "-c", "import numpy"]),
-        ("python -c 'import scipy.optimize'", [sys.executable, "-c", "import scipy.optimize"]),
-        ("lrms --help", [*lrms, "--help"]),
-        ("lrms fit --help", [*lrms, "fit", "--help"]),
-        ("lrms measure --help", [*lrms, "measure", "--help"]),
-        ("lrms fit imports", [sys.executable, "-c", FIT_IMPORTS]),
-        ("lrms fit 2k-point cloud", [*lrms, "fit", str(small), "--no-line-of-sight", "--json"]),
+    py = sys.executable
+    lrms = [py, "-m", "service.cli.main"]
+
+    def cmd(argv: list[str]) -> Callable[[Path], tuple[float, float]]:
+        return lambda tree: _run(argv, tree)
+
+    cases: list[Case] = [  # (name, run on a tree, also on the baseline tree)
+        ("python -c pass (baseline)", cmd([py, "-c", "pass"]), False),
+        ("python -c 'import numpy'", cmd([py, "-c", "import numpy"]), False),
+        ("python -c 'import scipy.optimize'", cmd([py, "-c", "import scipy.optimize"]), False),
+        ("python -c 'import scipy.spatial'", cmd([py, "-c", "import scipy.spatial"]), False),
+        ("lrms --help", cmd([*lrms, "--help"]), True),
+        ("lrms fit --help", cmd([*lrms, "fit", "--help"]), True),
+        ("lrms measure --help", cmd([*lrms, "measure", "--help"]), True),
+        ("lrms fit imports", cmd([py, "-c", FIT_IMPORTS]), True),
+        ("lrms fit 2k-point cloud", cmd([*lrms, "fit", str(small), "--no-line-of-sight", "--json"]), True),
+        ("lrms measure: until the sweep starts", lambda tree: _measure_start(tree, tmp), True),
     ]
-    walls: dict[str, list[float]] = {name: [] for name, _ in cases}
-    cpus: dict[str, list[float]] = {name: [] for name, _ in cases}
-    for _name, cmd in cases:  # warm the file cache
-        _run(cmd)
+    trees = [("", REPO)] + ([("base: ", baseline)] if baseline is not None else [])
+    rows = [(tag + name, fn, tree) for name, fn, both in cases for tag, tree in trees if both or not tag]
+    walls: dict[str, list[float]] = {name: [] for name, _, _ in rows}
+    cpus: dict[str, list[float]] = {name: [] for name, _, _ in rows}
+    for _name, fn, tree in rows:  # warm the file cache
+        fn(tree)
     for _ in range(reps):
-        for name, cmd in cases:
-            w, c = _run(cmd)
+        for name, fn, tree in rows:
+            w, c = fn(tree)
             walls[name].append(w)
             cpus[name].append(c)
-    base_w, base_c = min(walls[cases[0][0]]), min(cpus[cases[0][0]])
-    print(f"{'command':<36} {'wall s':>7} {'x base':>7} {'cpu s':>7} {'x base':>7}")
-    for name, _ in cases:
+    base_w, base_c = min(walls[rows[0][0]]), min(cpus[rows[0][0]])
+    print(f"{'command':<44} {'wall s':>7} {'x base':>7} {'cpu s':>7} {'x base':>7}")
+    for name, _, _ in rows:
         w, c = min(walls[name]), min(cpus[name])
-        print(f"{name:<36} {w:>7.3f} {w / base_w:>7.1f} {c:>7.3f} {c / base_c:>7.1f}")
+        cpu = f"{c:>7.3f} {c / base_c:>7.1f}" if math.isfinite(c) else f"{'-':>7} {'-':>7}"
+        print(f"{name:<44} {w:>7.3f} {w / base_w:>7.1f} {cpu}")
+    if baseline is not None:
+        ratios = [f"{name}: {min(walls['base: ' + name]) / min(walls[name]):.2f}x" for name, _, both in cases if both]
+        print("baseline tree / this tree (wall): " + "; ".join(ratios))
     print(f"(least of {reps} interleaved runs; goal: lrms fit / measure start <= 0.3 s)")
 
 
@@ -137,9 +181,13 @@ def reader_times(reps: int, tmp: Path) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reps", type=int, default=5)
+    ap.add_argument("--baseline-tree", type=Path, default=None, help="another checkout to time alongside")
+    ap.add_argument("--skip-readers", action="store_true", help="only the start-up table")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as d:
-        start_times(args.reps, Path(d))
+        start_times(args.reps, Path(d), args.baseline_tree)
+        if args.skip_readers:
+            return
         reader_times(max(args.reps // 2, 2), Path(d))
 
 

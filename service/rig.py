@@ -12,16 +12,12 @@ the sweep loop gets to it, so queueing delays in this process do not enter the c
 
 from __future__ import annotations
 
-import contextlib
-import json
 import logging
 import math
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from urllib.parse import urlsplit, urlunsplit
 
 import numpy as np
@@ -33,12 +29,15 @@ from drivers.url import open_device
 from lrms.errors import FitError
 from lrms.kinematics import RigCalibration
 from service import fitting, mcaplog
-from service.calstore import StoredCalibration
 from service.config import RigConfig
 from service.errors import ServiceError
 from service.jobs import Cancelled, JobContext
 from service.models import APPROACH_SPEED_DEG_S, MeasurementRequest, ResolvedSweep, resolve_sweep
+from service.simproc import SimProcess
 from service.sweep import MappedSweep, MotionLimits, SweepError, SweepPlan, SweepRecorder, run_sweep
+
+if TYPE_CHECKING:  # imported where a calibration is applied: it loads lrms.calibration and scipy.optimize
+    from service.calstore import StoredCalibration
 
 log = logging.getLogger(__name__)
 
@@ -50,58 +49,6 @@ def open_scanner(url: str, **kw: Any) -> ScannerClient:
     if not isinstance(client, ScannerClient):
         raise ServiceError(f"scanner URL {url!r} did not give an LMS100 client")
     return client
-
-
-class SimProcess:
-    """The simulated rig in a child process (``python -m sim.rig``), served on 127.0.0.1."""
-
-    def __init__(self, config: RigConfig) -> None:
-        sim = config.sim
-        assert sim is not None
-        cmd = [
-            sys.executable,
-            "-m",
-            "sim.rig",
-            "--scene",
-            sim.scene,
-            "--sensor",
-            sim.sensor,
-            "--seed",
-            str(sim.seed),
-            "--cola",
-            sim.cola,
-            "--can",
-            sim.can,
-            "--node",
-            str(sim.node),
-            "--kinematics",
-            json.dumps(config.sim_kinematics),
-            "--noise",
-            json.dumps(config.noise.si()),
-        ]
-        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-        assert self.proc.stdout is not None
-        line = self.proc.stdout.readline()
-        if not line:
-            self.proc.wait(10)
-            raise ServiceError(f"the simulated rig did not start (exit status {self.proc.returncode})")
-        self.info: dict[str, Any] = json.loads(line)
-        self.scanner_url: str = self.info["scanner_url"]
-        self.motor_url: str = self.info["motor_url"]
-
-    def describe(self) -> dict[str, Any]:
-        return {**self.info, "pid": self.proc.pid, "alive": self.proc.poll() is None}
-
-    def close(self) -> None:
-        if self.proc.poll() is None:
-            with contextlib.suppress(OSError):
-                assert self.proc.stdin is not None
-                self.proc.stdin.close()
-            try:
-                self.proc.wait(15)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(5)
 
 
 def write_ply(path: Path, mapped: MappedSweep) -> None:
@@ -297,11 +244,15 @@ class Rig:
         self._described: tuple[float, dict[str, Any]] | None = None
 
     # -- life cycle -----------------------------------------------------------------------
-    def open(self) -> Rig:
+    def open(self, sim: SimProcess | None = None) -> Rig:
+        """Open the devices (and the simulated rig of a ``[sim]`` config). ``sim``: the simulated
+        rig's process, already started (:class:`SimProcess` with ``wait=False``); it is closed
+        with the rig, also when opening fails."""
         cfg = self.config
         try:
             if cfg.sim is not None and cfg.sim.process:
-                self.sim = SimProcess(cfg)
+                self.sim = sim if sim is not None else SimProcess(cfg, wait=False)
+                self.sim.wait_ready()
                 self.scanner_url, self.motor_url = self.sim.scanner_url, self.sim.motor_url
             elif cfg.sim is not None:
                 from sim.rig import SimulatedRig
@@ -488,7 +439,11 @@ class Rig:
             raise SweepError(f"motor is faulted before the sweep: {fault.reason} (0x{fault.code:04X}); reset it first")
         plan = plan_from(sweep, min(APPROACH_SPEED_DEG_S, cfg.motor.max_velocity_deg_s))
         offset_ns = time.time_ns() - time.monotonic_ns()
-        calibration = None if ctx.calibration is None else StoredCalibration.from_payload(ctx.calibration)
+        calibration = None
+        if ctx.calibration is not None:
+            from service.calstore import StoredCalibration
+
+            calibration = StoredCalibration.from_payload(ctx.calibration)
 
         def clock_ns(t_monotonic: float) -> int:
             return round(t_monotonic * 1e9) + offset_ns
@@ -583,20 +538,16 @@ def build_service(
     """The REST service for ``config`` with its rig (opened unless told otherwise).
 
     ``isolate`` (the default, and what ``lrms serve`` and ``lrms measure`` use): the rig runs in
-    its own process (:class:`service.rigproc.RigSupervisor`), and the service gets its
+    its own process (:func:`service.rigproc.isolated_service`), and the service gets its
     measurement function, device state, health and drive reset from there. ``isolate=False``
     keeps a :class:`Rig` in this process (library use; no isolation from request handling).
     """
+    if isolate:
+        from service.rigproc import isolated_service
+
+        return isolated_service(config, open_rig, log_level=log_level)
     from service.api import Service
 
-    if isolate:
-        from service.rigproc import RigSupervisor
-
-        sup = RigSupervisor(config, log_level=log_level)
-        if open_rig:
-            sup.open()
-        svc = Service(config, sup.measure, rig_info=sup.describe, rig_health=sup.health, rig_reset=sup.reset)
-        return svc, sup
     rig = Rig(config)
     if open_rig:
         rig.open()

@@ -45,14 +45,14 @@ from collections import deque
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from service.config import RigConfig
 from service.errors import ServiceError
-from service.jobs import Cancelled, JobContext
-from service.models import MeasurementRequest
-from service.rig import device_health
-from service.store import Measurement
+
+if TYPE_CHECKING:  # imported where used: ``lrms measure`` starts this process before it loads them
+    from service.jobs import JobContext
+    from service.store import Measurement
 
 log = logging.getLogger(__name__)
 
@@ -238,6 +238,8 @@ class _Worker:
     def _run(self, cmd: StartCmd, cancel: threading.Event) -> None:
         from drivers.errors import DriverError
         from lrms.errors import LrmsError
+        from service.jobs import Cancelled, JobContext
+        from service.models import MeasurementRequest
 
         m = cmd.measurement
         ctx = JobContext(
@@ -322,11 +324,25 @@ def child_main(conn: Connection, config: RigConfig, log_level: str, status_perio
         raise SystemExit(128 + signum)
 
     signal.signal(signal.SIGTERM, terminated)
-    from service.rig import Rig
-
     outbox = _Outbox(conn)
+    sim = None
     try:
-        rig = Rig(config, fit_process=True).open()
+        if config.sim is not None and config.sim.process:
+            from service.simproc import SimProcess
+
+            sim = SimProcess(config, wait=False)  # the simulated rig boots while the rig code loads
+        from service.rig import Rig
+
+        rig = Rig(config, fit_process=True)
+    except BaseException as exc:
+        if sim is not None:
+            sim.close()
+        log.exception("the rig did not open")
+        outbox.send(StartupFailed(f"{type(exc).__name__}: {exc}"))
+        outbox.close()
+        return
+    try:
+        rig = rig.open(sim)
     except BaseException as exc:
         log.exception("the rig did not open")
         outbox.send(StartupFailed(f"{type(exc).__name__}: {exc}"))
@@ -608,6 +624,8 @@ class RigSupervisor:
 
     @staticmethod
     def _outcome(ctx: JobContext, ev: Finished) -> dict[str, Any]:
+        from service.jobs import Cancelled
+
         if ctx.metrics is not None:
             ctx.metrics.scans.inc(ev.scans_received)
             ctx.metrics.scans_missing.inc(ev.scans_missing)
@@ -672,6 +690,8 @@ class RigSupervisor:
         else:
             if proc["state_age_s"] > max(5.0, 20 * self.status_period_s):
                 reasons.append(f"no state from the rig process for {proc['state_age_s']:.1f} s")
+            from service.rig import device_health
+
             device_reasons, drive, scanner_connected = device_health(st.info)
             reasons += device_reasons
         return {
@@ -689,3 +709,30 @@ if __name__ == "__main__":
     from service.rigproc import main as _main
 
     raise SystemExit(_main())
+
+
+def _import_api() -> None:
+    with contextlib.suppress(Exception):  # a failed import is raised again where it is used
+        import service.api  # noqa: F401
+
+
+def isolated_service(config: RigConfig, open_rig: bool = True, *, log_level: str = "warning") -> tuple[Any, Any]:
+    """The REST service for ``config`` with its rig in a process of its own (a
+    :class:`RigSupervisor`, opened unless told otherwise): ``(Service, RigSupervisor)``.
+
+    This module imports neither the rig code nor the API at load time, so the rig process is
+    started first; the API's imports (FastAPI, SQLAlchemy, the store: about a second) then run
+    while it boots.
+    """
+    sup = RigSupervisor(config, log_level=log_level)
+    if open_rig:
+        loader = threading.Thread(target=_import_api, name="lrms-import-api", daemon=True)
+        loader.start()
+        try:
+            sup.open()
+        finally:
+            loader.join()
+    from service.api import Service
+
+    svc = Service(config, sup.measure, rig_info=sup.describe, rig_health=sup.health, rig_reset=sup.reset)
+    return svc, sup

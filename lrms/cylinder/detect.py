@@ -8,7 +8,6 @@ from functools import cached_property
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from lrms.cylinder.model import Cylinder, estimate_normals, perpendicular_frame
@@ -239,6 +238,8 @@ def _plane_extent(on: FloatArray, normal: FloatArray) -> float:
     if shape[0] * shape[1] > 4_000_000:  # a plane kilometres wide: no piece test
         piece = uv
     else:
+        from scipy import ndimage  # on first use: a tenth of a second of a command's start-up otherwise
+
         grid = np.zeros(shape, dtype=bool)
         grid[cells[:, 0], cells[:, 1]] = True
         labels, count = ndimage.label(grid, structure=np.ones((3, 3), dtype=bool))

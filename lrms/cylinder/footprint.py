@@ -46,7 +46,6 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
 from scipy.special import expit, logit, ndtr, ndtri
 
 from lrms.cylinder.model import Cylinder, Rays, _dot, _ray_cylinder
@@ -371,6 +370,8 @@ def _first_jacobian(theta: FloatArray, frame: _Frame, rays: Rays, optics: BeamOp
 
 
 def _solve(frame: _Frame, rays: Rays, optics: BeamOptics, mode: EdgeMode, start: FloatArray) -> _Solved:
+    from scipy.optimize import least_squares  # on first use: ~0.4 s of a command's start-up otherwise
+
     # the footprint makes the thin-beam fit too large by up to a spot diameter, never smaller by
     # more than a fraction of one: bounds keep a flat likelihood from wandering off
     spot = float(2.0 / optics.profile_sigma * optics.sigma(float(np.linalg.norm(frame.a))))

@@ -4,7 +4,8 @@
    then the point farthest from that one) lie on the rims of the two pipe ends. In case
    something else sticks out farther (a bracket's rod), two more pairs that avoid one of those
    points are tried as well, unless the first pair's start already fits the points closely
-   (robust spread below ``QUIET``), and the candidate whose model fits the points best (trimmed
+   (robust spread below ``QUIET``; for a flanged joint, whose sizes are rough until step 4's
+   rotation refinement, judged after that refinement), and the candidate whose model fits the points best (trimmed
    mean squared distance) is kept. Steps 1-3 work on ``SLICE_SAMPLE`` random points of larger
    clouds (the adjustment then uses all of them).
 2. **Slice cylinders.** Near each end a slice of points is cut and a cylinder fitted: the axis
@@ -353,6 +354,7 @@ def _slice_start(
     best_corner = centroid
     cache: dict[tuple[float, ...], Cylinder] = {}
     errors: list[str] = []
+    refined_first = False
     for e1, e2 in _end_candidates(pts, centroid):
         try:
             cand, corner = _from_ends(pts, sample, centroid, e1, e2, degree, ratio, flange, g, cache)
@@ -366,6 +368,13 @@ def _slice_start(
             # the pair fits the points closely already: the pairs that avoid one of its ends
             # (for something sticking out farther than a pipe end) cannot do better
             break
+        if flange and best is cand and not refined_first:
+            # a flanged start's sizes are rough until its rotation is refined (spread ~10 % of D
+            # before, ~1 % after): judge the first pair after that refinement, which it gets anyway
+            refined_first = True
+            turned = _refine_rotation(sample, cand, corner, ratio, flange)
+            if _robust_spread(sample, turned) < QUIET * turned.D:
+                return turned
     if best is None:
         raise FitError(errors[0] if errors else "no elbow found")
     return _refine_rotation(sample, best, best_corner, ratio, flange)

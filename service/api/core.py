@@ -126,10 +126,14 @@ class Service:
         self.rig_live = RigLive()
         self._started = False
 
-    def start(self) -> None:
+    def start(self, settle_heap: bool = True) -> None:
+        """Start the job runner and the scheduler, after :func:`_settle_heap` unless
+        ``settle_heap=False`` (``lrms measure``: its sweep and fit run in the rig process, and the
+        second of imports would only delay the sweep's start)."""
         if not self._started:
             self._started = True
-            _settle_heap()
+            if settle_heap:
+                _settle_heap()
             self.runner.start()
             self.scheduler.start()
 

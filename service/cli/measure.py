@@ -40,10 +40,14 @@ def run(args: argparse.Namespace) -> int:
     import sys
     import time
 
+    # only the config and request models before the rig process starts: the rig code, the API
+    # and the store load while it boots (service.rigproc.isolated_service). The sweep, mapping
+    # and fit run in the rig process (its fit worker imports the fit code), so this process
+    # does not import them to settle its heap (Service.start's default for lrms serve)
     from service.config import load_config
     from service.errors import ServiceError
     from service.models import MeasurementRequest, resolve_sweep
-    from service.rig import build_service
+    from service.rigproc import isolated_service
 
     sweep = {
         k: v
@@ -64,9 +68,9 @@ def run(args: argparse.Namespace) -> int:
         raise ServiceError(f"bad measurement request: {exc}") from None
     cfg = load_config(args.config, storage_dir=args.data)
     resolve_sweep(request.sweep, cfg)  # against the rig's limits before it is opened (RequestFieldError)
-    svc, rig = build_service(cfg)
+    svc, rig = isolated_service(cfg)
     try:
-        svc.start()
+        svc.start(settle_heap=False)
         m = svc.runner.submit(request)
         final = None
         while final is None:

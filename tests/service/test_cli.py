@@ -20,6 +20,28 @@ from tests.service.logcheck import assert_json_is_javascript_safe
 LRMS = [sys.executable, "-m", "service.cli.main"]
 
 
+def test_measure_starts_the_rig_process_before_the_rig_code_api_and_store_load() -> None:
+    """``lrms measure`` starts the rig process (:func:`service.rigproc.isolated_service`) with only
+    the config and request models loaded: the rig code, the web stack and the store load in this
+    process while the rig process boots (bench/bench_cli_start.py: the sweep's start); the rig
+    code loads the calibration store only when a calibration is applied."""
+    code = (
+        "import sys\n"
+        "import service.cli.measure, service.config, service.models, service.rigproc\n"
+        "late = ('service.rig', 'service.api', 'service.store', 'service.jobs', 'fastapi', 'sqlalchemy', 'scipy',\n"
+        "        'service.calstore', 'scipy.optimize')\n"
+        "print('LOADED:', *[m for m in late if m in sys.modules])\n"
+        "import service.rig\n"
+        "print('LOADED:', *[m for m in late if m in sys.modules])\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, check=True)
+    before, after = out.stdout.strip().splitlines()[-2:]
+    assert before == "LOADED:", out.stdout
+    assert "service.rig" in after.split() and "service.store" in after.split()  # the probe can see them
+    # the rig process's code before its sweep: no calibration store (lrms.calibration, scipy.optimize)
+    assert "service.calstore" not in after.split() and "scipy.optimize" not in after.split(), after
+
+
 def test_measure_then_replay(tmp_path: Path) -> None:
     out = tmp_path / "run.mcap"
     plot = tmp_path / "run.png"
