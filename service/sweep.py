@@ -413,6 +413,8 @@ class SweepRecorder:
         #: motor samples timed by the drive's latch time / by the SYNC time (live sweeps)
         self.motor_samples_drive_timed = 0
         self.motor_samples_sync_timed = 0
+        #: the time source a replayed log's live sweep reported (its ``motor_time_source`` event)
+        self.logged_motor_time_source: str | None = None
         self.scan_frequency_hz: float | None = None
 
     def add_scan(self, scan: Any, host_ns: int, raw: bytes | None = None) -> ScanRecord:
@@ -477,11 +479,12 @@ class SweepRecorder:
     @property
     def motor_time_source(self) -> str | None:
         """``"drive"`` (every motor sample timed by the drive's latch time), ``"sync"`` (by the
-        SYNC time), ``"mixed"``, or None (no live samples timed here: a replay's come from the log)."""
+        SYNC time; a Modbus drive's poll time), ``"mixed"``; in a replay (the log's samples are
+        already mapped) the live sweep's, from its ``motor_time_source`` event; else None."""
         d, s = self.motor_samples_drive_timed, self.motor_samples_sync_timed
         if d and s:
             return "mixed"
-        return "drive" if d else "sync" if s else None
+        return "drive" if d else "sync" if s else self.logged_motor_time_source
 
     def add_motor(self, t_ns: int, position: float, velocity: float) -> None:
         self.motor.add(t_ns, position, velocity)
@@ -804,6 +807,7 @@ def run_sweep(
                 if now >= tail_until and (now >= tail_limit or end_covered()):
                     break
         pull_motor()
+        emit("motor_time_source", {"source": recorder.motor_time_source})
     except BaseException as exc:
         abort.set()
         stop_error = stop_motor(motor)
