@@ -108,6 +108,8 @@ def load_log(path: str | Path | BinaryIO, kinematics: dict[str, Any] | None = No
                     t_start = t
                 else:
                     t_end = t
+            elif ev.get("kind") == "motor_time_source":
+                recorder.logged_motor_time_source = ev.get("source")
         elif msg.topic == mcaplog.TOPIC_RESULT:
             stored = msg.decode()
     if meta is None or recorder is None:

@@ -171,6 +171,7 @@ def sweep_info(recorder: SweepRecorder, mapped: MappedSweep, sweep: ResolvedSwee
             "scans_in_sweep": int(np.unique(mapped.scan_index).size),
             "motor_samples": len(recorder.motor),
             "motor_timing_jitter_s": mapped.motor_timing_jitter_s,
+            "motor_time_source": recorder.motor_time_source,
         },
         "mapping": mapped.stats(),
         "clock": {

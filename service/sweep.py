@@ -7,6 +7,14 @@ maps that to host time, and the shaft angle at that instant is interpolated line
 the timestamped motor samples around it (vectorized ``np.interp`` over every beam of the sweep).
 Beams outside the motor samples' time span get no angle and are counted, never extrapolated.
 
+A motor sample's time is the drive's own latch time when the drive reports one (CANopen 0x1013
+mapped next to the position: ``drive_stamp_us``), mapped to host time by a second
+:class:`~service.timesync.ClockSync` fed with (drive stamp, host receive time) pairs
+(:meth:`SweepRecorder.motor_sample_times`); otherwise it is the host time of the SYNC that
+triggered the sample, which is late-latched by however long the drive took to process that
+SYNC (milliseconds on a loaded host with a simulated drive). The result says which
+(``motor_time_source``).
+
 Every scan is counted: the 16-bit scan counter's gaps (wrap-aware) are summed and listed, and
 the result carries them, so that a lost scan is always visible.
 
@@ -205,8 +213,9 @@ def motor_timing_jitter(
 ) -> float | None:
     """The scatter (s) of the motor samples' time stamps about a constant-speed motion, measured.
 
-    A sample's time stamp is the host time of the SYNC it answers; the drive latched its
-    position when the SYNC reached it. Any delay between the two that varies from sample to
+    A sample's time stamp is the host time of the SYNC it answers (the drive latched its
+    position when the SYNC reached it), or the drive's own latch time mapped to host time. Any
+    error in it that varies from sample to
     sample (a busy host, a queue on the link) shows as scatter of angle about the straight line
     of a constant-speed sweep, ``delta_angle = speed x delta_t``. The samples whose angle lies
     inside ``window`` (motor rad, the constant-velocity part) and, given, inside the time span ``span_s``
@@ -396,9 +405,16 @@ class SweepRecorder:
         self.log = log
         self.dialect = dialect
         self.clock = ClockSync()
+        #: the drive's latch clock (0x1013, us) to host time, from (stamp, receive time) pairs
+        self.motor_clock = ClockSync(window=2048, refit_every=64)
         self.gaps = GapCounter()
         self.scans: list[ScanRecord] = []
         self.motor = MotorTrack()
+        #: motor samples timed by the drive's latch time / by the SYNC time (live sweeps)
+        self.motor_samples_drive_timed = 0
+        self.motor_samples_sync_timed = 0
+        #: the time source a replayed log's live sweep reported (its ``motor_time_source`` event)
+        self.logged_motor_time_source: str | None = None
         self.scan_frequency_hz: float | None = None
 
     def add_scan(self, scan: Any, host_ns: int, raw: bytes | None = None) -> ScanRecord:
@@ -432,6 +448,43 @@ class SweepRecorder:
                 beta = float(self.calibration.beta(self.motor.position[-1]))
                 self.log.log_plane_pose(host_ns, beta, self.calibration.p)
         return rec
+
+    def motor_sample_times(
+        self, t_sync_s: ArrayLike, drive_stamp_us: ArrayLike | None = None, t_rx_s: ArrayLike | None = None
+    ) -> FloatArray:
+        """Host seconds of a batch of motor samples (in arrival order): where a sample has a
+        drive time stamp (``drive_stamp_us`` >= 0, raw 32-bit us, with its host receive time
+        ``t_rx_s``), that stamp mapped to host time by :attr:`motor_clock` after every pair of
+        the batch has fed it; elsewhere the SYNC time ``t_sync_s``."""
+        t = np.array(t_sync_s, dtype=np.float64).reshape(-1)
+        if drive_stamp_us is None:
+            self.motor_samples_sync_timed += t.size
+            return t
+        stamps = np.asarray(drive_stamp_us, dtype=np.int64).reshape(-1)
+        rx = np.asarray(t_rx_s, dtype=np.float64).reshape(-1)
+        if not t.shape == stamps.shape == rx.shape:
+            raise SweepError(f"motor sample arrays differ in length: {t.shape}, {stamps.shape}, {rx.shape}")
+        stamped = (stamps >= 0) & np.isfinite(rx)
+        idx = np.flatnonzero(stamped)
+        if idx.size:
+            clock = self.motor_clock
+            unwrapped = np.array([clock.unwrap(int(u)) for u in stamps[idx]], dtype=np.int64)
+            for u, h in zip(unwrapped.tolist(), rx[idx].tolist(), strict=True):
+                clock.update(u, h)
+            t[idx] = clock.to_host(unwrapped)
+        self.motor_samples_drive_timed += idx.size
+        self.motor_samples_sync_timed += t.size - idx.size
+        return t
+
+    @property
+    def motor_time_source(self) -> str | None:
+        """``"drive"`` (every motor sample timed by the drive's latch time), ``"sync"`` (by the
+        SYNC time; a Modbus drive's poll time), ``"mixed"``; in a replay (the log's samples are
+        already mapped) the live sweep's, from its ``motor_time_source`` event; else None."""
+        d, s = self.motor_samples_drive_timed, self.motor_samples_sync_timed
+        if d and s:
+            return "mixed"
+        return "drive" if d else "sync" if s else self.logged_motor_time_source
 
     def add_motor(self, t_ns: int, position: float, velocity: float) -> None:
         self.motor.add(t_ns, position, velocity)
@@ -644,7 +697,10 @@ def run_sweep(
         arr = motor.sample_arrays_since(sample_cursor[0])
         if len(arr.t_host_s):
             sample_cursor[0] = float(arr.t_host_s[-1])
-            t_ns = np.rint(np.asarray(arr.t_host_s, dtype=np.float64) * 1e9).astype(np.int64) + clock_ns(0.0)
+            t_s = recorder.motor_sample_times(
+                arr.t_host_s, getattr(arr, "drive_stamp_us", None), getattr(arr, "t_rx_host_s", None)
+            )
+            t_ns = np.rint(t_s * 1e9).astype(np.int64) + clock_ns(0.0)
             recorder.add_motor_batch(t_ns, arr.position_rad, arr.velocity_rad_s)
 
     def move(beta: float, speed: float) -> None:
@@ -751,6 +807,7 @@ def run_sweep(
                 if now >= tail_until and (now >= tail_limit or end_covered()):
                     break
         pull_motor()
+        emit("motor_time_source", {"source": recorder.motor_time_source})
     except BaseException as exc:
         abort.set()
         stop_error = stop_motor(motor)

@@ -282,6 +282,42 @@ def split_pdo_map_entry(entry: int) -> tuple[int, int, int]:
     return (entry >> 16) & 0xFFFF, (entry >> 8) & 0xFF, entry & 0xFF
 
 
+#: A PDO's mapping: (index, sub-index, bits) per mapped object, in frame order.
+PdoMapping = tuple[tuple[int, int, int], ...]
+
+#: The sample TPDOs a master maps when the drive has no time stamp: TPDO1 = statusword + position
+#: actual, TPDO2 = velocity actual + following error.
+SAMPLE_TPDOS_PLAIN: tuple[PdoMapping, PdoMapping] = (
+    ((STATUSWORD, 0, 16), (POSITION_ACTUAL, 0, 32)),
+    ((VELOCITY_ACTUAL, 0, 32), (FOLLOWING_ERROR_ACTUAL, 0, 32)),
+)
+#: ... and when it has 0x1013: TPDO1 = position actual + the drive's time stamp of the same latch
+#: (64 bits, full), TPDO2 = statusword + velocity actual.
+SAMPLE_TPDOS_STAMPED: tuple[PdoMapping, PdoMapping] = (
+    ((POSITION_ACTUAL, 0, 32), (HIGH_RES_TIMESTAMP, 0, 32)),
+    ((STATUSWORD, 0, 16), (VELOCITY_ACTUAL, 0, 32)),
+)
+
+
+def unpack_pdo(mapping: PdoMapping, data: bytes) -> dict[int, int]:
+    """The values of a received PDO by object index (sub-index 0 objects, whole bytes only).
+
+    :class:`CodecError` if the frame is shorter than the mapping or an entry is not a whole
+    integer object of the project (the mapping is the master's own, so that is a programming error)."""
+    out: dict[int, int] = {}
+    offset = 0
+    for index, subindex, bits in mapping:
+        spec = OBJECTS.get((index, subindex))
+        if spec is None or not spec.dtype.is_integer or bits != spec.dtype.bits:
+            raise CodecError(f"0x{index:04X}:{subindex:02X} ({bits} bits) is not a mappable integer object")
+        size = bits // 8
+        if len(data) < offset + size:
+            raise CodecError(f"PDO of {len(data)} bytes is shorter than its mapping ({offset + size}+ bytes)")
+        out[index] = spec.dtype.decode(bytes(data[offset : offset + size]))
+        offset += size
+    return out
+
+
 # --------------------------------------------------------------------------------------------
 # Controlword
 # --------------------------------------------------------------------------------------------

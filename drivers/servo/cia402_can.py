@@ -20,17 +20,27 @@ other interface the host part (or the path) is the channel. Options:
                               which the drive consumes (0x1016:1, same tolerance): if this
                               process dies the drive faults (0x8130) and stops; 0 = off
 ``sdo_timeout``    1.0        seconds to wait for each SDO response
+``drive_stamp``    1          map the drive's time stamp 0x1013 into the samples when it has one
+                              (0 = never: samples carry only the SYNC time)
 ``bitrate``        (none)     passed to python-can for interfaces that need it
 ``counts_per_rev`` (config)   encoder counts per motor revolution, overrides the DriveConfig
 ``gear_ratio``     (config)   motor revolutions per output revolution, overrides the DriveConfig
 =================  =========  ====================================================================
 
 On open the driver checks 0x1000 (profile 402), puts the node in Pre-operational, sets the
-heartbeat, maps TPDO1 = statusword + position actual and TPDO2 = velocity actual + following
-error (both transmission type 1, every SYNC), writes the configured windows and limits, starts
-the node (Operational), and runs its own SYNC producer thread. Every TPDO1 is stamped with the
+heartbeat, maps the sample TPDOs (both transmission type 1, every SYNC), writes the configured
+windows and limits, starts the node (Operational), and runs its own SYNC producer thread. When
+the drive answers an SDO read of 0x1013 (high resolution time stamp, µs) the sample TPDOs are
+TPDO1 = position actual + 0x1013 and TPDO2 = statusword + velocity actual
+(:data:`cia402.SAMPLE_TPDOS_STAMPED`): every sample then carries the drive's own time of the
+latch, raw (:attr:`MotorSample.drive_stamp_us`), with the host time it was received
+(:attr:`MotorSample.t_rx_host_s`); mapping that clock to host time is the caller's (the service
+does it with its clock model). Otherwise TPDO1 = statusword + position actual and TPDO2 =
+velocity actual + following error (:data:`cia402.SAMPLE_TPDOS_PLAIN`), as before.
+Every TPDO1 is stamped with the
 host time of the SYNC it answers (paired first-in first-out, so a TPDO that arrives after the
-next SYNC still gets its own SYNC's time; CAN keeps order and does not drop frames); a sample
+next SYNC still gets its own SYNC's time; CAN keeps order and does not drop frames); that is
+the sample's ``t_host_s`` in both layouts. A sample
 is emitted when the matching TPDO2 arrives, and only then do waits on the statusword see it
 (so a wait that returned has its sample stored).
 The controlword is written by SDO (each command confirmed by the drive). The driver also
@@ -40,7 +50,8 @@ off, stops the SYNC and the watchdog and releases the bus; it leaves the drive's
 
 ``setup=0&sync_hz=0`` is the passive way in, for a second process (``lrms motor status``) while
 another master runs the drive: no NMT command, no re-mapping, no SYNC of its own; samples come
-from the other master's SYNCs (assumed to use this driver's PDO layout), and when no TPDOs flow
+from the other master's SYNCs (assumed to use one of this driver's two PDO layouts: which one is
+read from the drive's 0x1A00), and when no TPDOs flow
 the statusword is read by SDO.
 """
 
@@ -51,7 +62,6 @@ import contextlib
 import logging
 import math
 import socket
-import struct
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
@@ -99,6 +109,7 @@ class CanUrlOptions:
     heartbeat_lost: float = 5.0
     master_id: int = 127
     sdo_timeout: float = 1.0
+    drive_stamp: bool = True
     counts_per_rev: int | None = None
     gear_ratio: float | None = None
 
@@ -121,6 +132,7 @@ def read_url_options(url: DeviceURL) -> CanUrlOptions:
         heartbeat_lost=url.get_float("heartbeat_lost", 5.0, lo=1.5, hi=100.0),
         master_id=url.get_int("master_id", 127, lo=0, hi=127),
         sdo_timeout=url.get_float("sdo_timeout", 1.0, lo=0.01, hi=30.0),
+        drive_stamp=url.get_bool("drive_stamp", True),
         counts_per_rev=url.get_int("counts_per_rev", lo=1) if url.has("counts_per_rev") else None,
         gear_ratio=url.get_float("gear_ratio") if url.has("gear_ratio") else None,
     )
@@ -200,7 +212,10 @@ class Cia402CanMotor(Cia402Motor):
         self._sdo_lock = threading.Lock()
         self._sw_cond = threading.Condition()
         self._last_sw: tuple[float, int] | None = None  # (SYNC time, statusword)
-        self._pending_tpdo1: tuple[float, int, int] | None = None  # (SYNC time, statusword, position)
+        #: the sample TPDOs' mappings (set at start-up: with or without the drive's time stamp)
+        self.sample_tpdos: tuple[cia402.PdoMapping, cia402.PdoMapping] = cia402.SAMPLE_TPDOS_PLAIN
+        # (SYNC time, receive time, TPDO1's values by object index)
+        self._pending_tpdo1: tuple[float, float, dict[int, int]] | None = None
         # unanswered SYNCs, oldest first; more than 0.5 s of them means answers were lost
         outstanding = max(8, round(0.5 * (self.options.sync_hz or 100.0)))
         self._sync_times: collections.deque[float] = collections.deque(maxlen=outstanding)
@@ -269,14 +284,18 @@ class Cia402CanMotor(Cia402Motor):
         if self.options.setup:
             self._nmt(0x80)  # Pre-operational: PDO mapping may change
             self._write_object(cia402.PRODUCER_HEARTBEAT_TIME, 0, self.options.heartbeat_ms)
-            self._map_tpdo(0, [(cia402.STATUSWORD, 0, 16), (cia402.POSITION_ACTUAL, 0, 32)])
-            self._map_tpdo(1, [(cia402.VELOCITY_ACTUAL, 0, 32), (cia402.FOLLOWING_ERROR_ACTUAL, 0, 32)])
+            if self.options.drive_stamp and self._has_time_stamp():
+                self.sample_tpdos = cia402.SAMPLE_TPDOS_STAMPED
+            for k, mapping in enumerate(self.sample_tpdos):
+                self._map_tpdo(k, list(mapping))
             self._write_object(cia402.SYNC_COUNTER_OVERFLOW, 0, 0)
             self._configure_drive()
             self._setup_master_heartbeat()
             self._nmt(0x01)  # Operational
         else:
             self._heartbeat_ms = self._read_object(cia402.PRODUCER_HEARTBEAT_TIME)
+            if self.options.drive_stamp and self._read_tpdo_mapping(0) == cia402.SAMPLE_TPDOS_STAMPED[0]:
+                self.sample_tpdos = cia402.SAMPLE_TPDOS_STAMPED  # the other master mapped the stamp
         self._controlword = self._read_object(cia402.CONTROLWORD)
         if self._heartbeat_ms:
             self._last_heartbeat = self.clock()  # the watchdog starts now
@@ -285,6 +304,30 @@ class Cia402CanMotor(Cia402Motor):
         if self.options.sync_hz:  # first TPDO: the node is up and answering our SYNC
             with self._sw_cond:
                 self._sw_cond.wait_for(lambda: self._last_sw is not None, timeout=1.0)
+
+    def _has_time_stamp(self) -> bool:
+        """The drive has object 0x1013 (an SDO read of it succeeds)."""
+        try:
+            self._read_object(cia402.HIGH_RES_TIMESTAMP)
+        except SdoAbort as exc:
+            log.info("node %d: no time stamp 0x1013 (%s): samples carry the SYNC time only", self.node_id, exc)
+            return False
+        return True
+
+    @property
+    def drive_stamped(self) -> bool:
+        """The samples carry the drive's own latch time (0x1013 mapped next to the position)."""
+        return self.sample_tpdos == cia402.SAMPLE_TPDOS_STAMPED
+
+    def _read_tpdo_mapping(self, k: int) -> cia402.PdoMapping | None:
+        """TPDO k+1's mapping as the drive holds it (None if the drive refuses to tell)."""
+        try:
+            n = self._read_object(cia402.TPDO_MAP + k, 0)
+            return tuple(
+                cia402.split_pdo_map_entry(self._read_object(cia402.TPDO_MAP + k, sub)) for sub in range(1, n + 1)
+            )
+        except SdoAbort:
+            return None
 
     def _setup_master_heartbeat(self) -> None:
         """Let the drive watch this driver's heartbeat (0x1016:1), so a dead host stops the motor."""
@@ -443,29 +486,50 @@ class Cia402CanMotor(Cia402Motor):
             return t_sync
 
     def _on_tpdo1(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        if len(data) < 6:
+        try:
+            values = cia402.unpack_pdo(self.sample_tpdos[0], bytes(data))
+        except cia402.CodecError as exc:
+            log.debug("node %d: TPDO1 ignored: %s", self.node_id, exc)
             return
-        statusword, position = struct.unpack_from("<Hi", data)
         now = self.clock()
         t = self._sync_time_for(now)
         self._last_tpdo_rx = now
         self.tpdo_count += 1
-        pending, self._pending_tpdo1 = self._pending_tpdo1, (t, statusword, position)
+        pending, self._pending_tpdo1 = self._pending_tpdo1, (t, now, values)
         if pending is not None:  # its TPDO2 never came
-            self._emit(pending, math.nan)
+            self._emit(pending, {})
 
     def _on_tpdo2(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        if len(data) < 4:
+        try:
+            values = cia402.unpack_pdo(self.sample_tpdos[1], bytes(data))
+        except cia402.CodecError as exc:
+            log.debug("node %d: TPDO2 ignored: %s", self.node_id, exc)
             return
-        (velocity,) = struct.unpack_from("<i", data)
         pending, self._pending_tpdo1 = self._pending_tpdo1, None
         if pending is not None:
-            self._emit(pending, velocity)
+            self._emit(pending, values)
 
-    def _emit(self, tpdo1: tuple[float, int, int], velocity_counts: float) -> None:
-        t, statusword, position = tpdo1
+    def _emit(self, tpdo1: tuple[float, float, dict[int, int]], tpdo2: dict[int, int]) -> None:
+        """One sample from a SYNC's two TPDOs (``tpdo2`` empty: it never came)."""
+        t, t_rx, values = tpdo1
+        values = {**values, **tpdo2}
         c = self.config
-        self._push_sample(MotorSample(t, c.counts_to_rad(position), c.counts_to_rad(velocity_counts), statusword))
+        velocity = values.get(cia402.VELOCITY_ACTUAL)
+        statusword = values.get(cia402.STATUSWORD)
+        stamp = values.get(cia402.HIGH_RES_TIMESTAMP)
+        last = self._last_sw
+        self._push_sample(
+            MotorSample(
+                t,
+                c.counts_to_rad(values[cia402.POSITION_ACTUAL]),
+                math.nan if velocity is None else c.counts_to_rad(velocity),
+                statusword if statusword is not None else (last[1] if last is not None else 0),
+                stamp,
+                None if stamp is None else t_rx,
+            )
+        )
+        if statusword is None:  # it was in the TPDO that never came: nothing new for waiters
+            return
         with self._sw_cond:  # waiters see a statusword only once its sample is in the buffer
             self._last_sw = (t, statusword)
             self._sw_cond.notify_all()

@@ -271,12 +271,19 @@ class DriveConfig:
 
 
 class MotorSample(NamedTuple):
-    """One position/velocity sample: host time of the sampling instant (for CANopen the SYNC)."""
+    """One position/velocity sample: host time of the sampling instant (for CANopen the SYNC).
+
+    A drive that reports when it latched the sample (CANopen 0x1013 mapped next to the position)
+    adds that time stamp, raw (``drive_stamp_us``: its own microsecond clock, 32-bit wrapping),
+    and the host time the sample was received (``t_rx_host_s``): the pairs a clock model needs
+    to map the drive's clock to host time (done in the service, not here). None: not reported."""
 
     t_host_s: float
     position_rad: float
     velocity_rad_s: float
     statusword: int
+    drive_stamp_us: int | None = None
+    t_rx_host_s: float | None = None
 
 
 class SampleArrays(NamedTuple):
@@ -284,6 +291,17 @@ class SampleArrays(NamedTuple):
     position_rad: npt.NDArray[np.float64]
     velocity_rad_s: npt.NDArray[np.float64]
     statusword: npt.NDArray[np.uint16]
+    #: the drive's raw time stamp per sample (-1 = none; see :class:`MotorSample`)
+    drive_stamp_us: npt.NDArray[np.int64]
+    #: host receive time per sample (NaN when the backend does not record it)
+    t_rx_host_s: npt.NDArray[np.float64]
+
+
+def _sample(t: float, p: float, v: float, s: int, d: int, rx: float) -> MotorSample:
+    stamped = int(d) >= 0
+    return MotorSample(
+        float(t), float(p), float(v), int(s), int(d) if stamped else None, float(rx) if stamped else None
+    )
 
 
 class SampleBuffer:
@@ -297,13 +315,17 @@ class SampleBuffer:
         self._p = np.zeros(capacity)
         self._v = np.zeros(capacity)
         self._s = np.zeros(capacity, dtype=np.uint16)
+        self._d = np.full(capacity, -1, dtype=np.int64)
+        self._rx = np.full(capacity, math.nan)
         self._n = 0  # total ever pushed
         self._lock = threading.Lock()
 
     def push(self, sample: MotorSample) -> None:
         with self._lock:
             i = self._n % self._cap
-            self._t[i], self._p[i], self._v[i], self._s[i] = sample
+            self._t[i], self._p[i], self._v[i], self._s[i] = sample[:4]
+            self._d[i] = -1 if sample.drive_stamp_us is None else sample.drive_stamp_us
+            self._rx[i] = math.nan if sample.t_rx_host_s is None else sample.t_rx_host_s
             self._n += 1
 
     @property
@@ -316,7 +338,7 @@ class SampleBuffer:
             if self._n == 0:
                 return None
             i = (self._n - 1) % self._cap
-            return MotorSample(float(self._t[i]), float(self._p[i]), float(self._v[i]), int(self._s[i]))
+            return _sample(self._t[i], self._p[i], self._v[i], self._s[i], self._d[i], self._rx[i])
 
     def arrays_since(self, t_host_s: float = -math.inf) -> SampleArrays:
         """Samples with ``t_host_s`` strictly after ``t_host_s``, oldest first, as arrays (copies)."""
@@ -326,7 +348,14 @@ class SampleBuffer:
             order = (np.arange(start, self._n)) % self._cap
             t = self._t[order]
             keep = t > t_host_s
-            return SampleArrays(t[keep], self._p[order][keep], self._v[order][keep], self._s[order][keep])
+            return SampleArrays(
+                t[keep],
+                self._p[order][keep],
+                self._v[order][keep],
+                self._s[order][keep],
+                self._d[order][keep],
+                self._rx[order][keep],
+            )
 
     def positions_at(self, t_host_s: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """Positions interpolated linearly between samples at the host times ``t_host_s``
@@ -347,8 +376,10 @@ class SampleBuffer:
     def since(self, t_host_s: float = -math.inf) -> list[MotorSample]:
         a = self.arrays_since(t_host_s)
         return [
-            MotorSample(float(t), float(p), float(v), int(s))
-            for t, p, v, s in zip(a.t_host_s, a.position_rad, a.velocity_rad_s, a.statusword, strict=True)
+            _sample(t, p, v, s, d, rx)
+            for t, p, v, s, d, rx in zip(
+                a.t_host_s, a.position_rad, a.velocity_rad_s, a.statusword, a.drive_stamp_us, a.t_rx_host_s, strict=True
+            )
         ]
 
 

@@ -6,7 +6,8 @@
 * SDO server: expedited and segmented upload and download, aborts with the drive's codes
   (block transfer is answered with abort 0x05040001),
 * PDOs from the drive's own 0x1400-0x1A03 objects: synchronous TPDOs (type 1-240) sampled when
-  SYNC arrives and sent right after it, event-driven TPDOs (254/255) on change or event timer,
+  SYNC arrives and sent right after it (one snapshot, including the drive's time stamp 0x1013,
+  the drive clock in µs at that latch), event-driven TPDOs (254/255) on change or event timer,
   RPDOs applied on reception (254/255) or at the next SYNC (0-240),
 * heartbeat producer (0x1017; stops while the drive's ``heartbeat_loss`` fault is injected),
 * heartbeat consumer (0x1016:1 = master node << 16 | time in ms): the master's silence is fault
@@ -25,6 +26,7 @@ from __future__ import annotations
 import collections
 import logging
 import queue
+import random
 import struct
 import threading
 import time
@@ -87,6 +89,11 @@ class SimCanNode:
         self.tpdo_latency_s = 0.0
         #: the synchronous TPDOs of this many coming SYNCs are not sent (frames lost)
         self.drop_tpdos = 0
+        #: a drive slow to process SYNC: it latches this long after the SYNC reached it, plus a
+        #: uniformly random extra of up to ``sync_delay_jitter_s`` (seeded: reproducible)
+        self.sync_delay_s = 0.0
+        self.sync_delay_jitter_s = 0.0
+        self._sync_delay_rng = random.Random(node_id)
         self._master_heartbeat_seen: float | None = None
         self._delayed: queue.SimpleQueue[tuple[float, list[tuple[int, bytes]]]] = queue.SimpleQueue()
 
@@ -235,6 +242,9 @@ class SimCanNode:
         return bytes(out)
 
     def _on_sync(self) -> None:
+        delay = self.sync_delay_s + self.sync_delay_jitter_s * self._sync_delay_rng.random()
+        if delay > 0:
+            time.sleep(delay)
         for k, data in sorted(self._rpdo_pending.items()):
             self._apply_rpdo(k, data)
         self._rpdo_pending.clear()

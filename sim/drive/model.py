@@ -176,6 +176,12 @@ class SimDrive:
                 return live
             return self._store[(spec.index, spec.subindex)]
 
+    @property
+    def stamp_epoch(self) -> float:
+        """The drive clock's reading (s) at which its time stamp 0x1013 read 0: the stamp is
+        ``(drive time - stamp_epoch)`` in µs, modulo 2**32."""
+        return self._t0
+
     def _live(self, index: int) -> int | None:
         if index == cia402.STATUSWORD:
             return self._statusword()

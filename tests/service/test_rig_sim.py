@@ -154,11 +154,21 @@ def test_measures_the_cylinder_with_the_rig_in_another_process(sim_process: RigP
             body = _wait(client, mid, {"done", "failed"})
             assert body["state"] == "done", body["error"]
             res = body["result"]
-            # the rig process and the service share two cores with the test: the SYNC-to-latch
-            # delay on the simulated CAN link drifts, which the type-A std does not hold (see
-            # docs/service.md, known limits); the budget's U, the 2 mm goal and the interval do
+            # the rig process and the service share two cores with the test: the motor samples are timed
+            # by the drive's own latch time (0x1013), so the SYNC-to-latch delay of the loaded link no
+            # longer smears them (docs/service.md, known limits): their scatter about the constant-speed
+            # motion was 0.013-0.021 ms in 8 sweeps at load 6-8 (0.17-8.5 ms with the SYNC time). The
+            # diameter's error was within 0.7 std_m in 7 of those sweeps but -0.41 mm with std_m 0.115 mm
+            # (3.6 std_m) in one: something besides the motor timing still escapes std_m under load, so
+            # the budget's U, the 2 mm goal and the interval are checked, not 4 std_m
+            print(
+                f"rig-process cylinder: error {(res['diameter_m'] - TRUTH_D) * 1e3:.3f} mm,"
+                f" std_m {res['uncertainty']['std_m'] * 1e3:.3f} mm, motor timing jitter"
+                f" {res['sweep']['motor_timing_jitter_s'] * 1e3:.3f} ms ({res['sweep']['motor_time_source']})"
+            )
             _check_cylinder(res, gum=False)
-            assert res["sweep"]["motor_timing_jitter_s"] is not None
+            assert res["sweep"]["motor_time_source"] == "drive"
+            assert res["sweep"]["motor_timing_jitter_s"] < 1e-4
             # whatever is lost is counted, the same by driver and sweep; and every scan missing is one
             # the simulator passed over because it fell behind real time (a starved host): the
             # driver and the service lost none (the simulator's own count can be larger by scans
