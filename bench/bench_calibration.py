@@ -71,7 +71,7 @@ from sim.scene import (
     get_scene,
     lms1xx_device_angles,
 )
-from sim.scene.library import ROOM_SPHERE_BAR, ROOM_SPHERES, room_spheres_artefact
+from sim.scene.library import ROOM_SPHERE_BAR, ROOM_SPHERES, ROOM_SPHERES_LARGE_FACTOR, room_spheres_artefact
 
 D = np.deg2rad
 
@@ -112,7 +112,10 @@ def layout(name: str, u_distance_m: float) -> tuple[Scene, Artefact]:
             scene.add(Sphere(centres[i], ROOM_SPHERES[i][1] / 2), remission=0.8, name=f"sphere{i}")
         dist = float(np.linalg.norm(centres[b] - centres[a]))
         art["distances_m"] = [{"a": a, "b": b, "distance_m": dist, "u_distance_m": u_distance_m}]
-    elif name == "network":
+    elif name in ("network", "network-large"):
+        if name == "network-large":
+            scene = get_scene("room-spheres-large")
+            art = room_spheres_artefact(ROOM_SPHERES_LARGE_FACTOR)
         n = len(centres)
         art["distances_m"] = [
             {"a": i, "b": j, "distance_m": float(np.linalg.norm(centres[j] - centres[i])), "u_distance_m": u_distance_m}
@@ -252,14 +255,14 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runs", type=int, default=20)
-    ap.add_argument("--speed", type=float, default=5.0, help="calibration sweep speed, deg/s (25 Hz scans)")
+    ap.add_argument("--speed", type=float, default=20.0, help="calibration sweep speed, deg/s (25 Hz scans)")
     ap.add_argument("--sweeps", type=int, default=1, help="calibration sweeps per run (independent noise)")
-    ap.add_argument("--plane-points", type=int, default=20000, help="beams used per plane")
+    ap.add_argument("--plane-points", type=int, default=5000, help="beams used per plane")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--layout", choices=("room", "long-bar", "network"), default="room")
-    ap.add_argument("--sweep-deg", type=float, default=180.0, help="motor span of a sweep, centred on 0")
+    ap.add_argument("--layout", choices=("room", "long-bar", "network", "network-large"), default="network-large")
+    ap.add_argument("--sweep-deg", type=float, default=340.0, help="motor span of a sweep, centred on 0")
     ap.add_argument("--u-distance", type=float, default=3e-5, help="u of the long bar's / network's distances, m")
-    ap.add_argument("--poses", type=int, default=1, choices=(1, 2, 3), help="rig poses, one sweep set each")
+    ap.add_argument("--poses", type=int, default=3, choices=(1, 2, 3), help="rig poses, one sweep set each")
     ap.add_argument(
         "--lms1xx", action="store_true", help="also measure the part with the LMS1xx footprint sensor: error vs U"
     )
