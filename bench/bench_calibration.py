@@ -52,6 +52,7 @@ import argparse
 import dataclasses
 import json
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -260,7 +261,7 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.rad2deg(np.arccos(np.clip(abs(float(a @ b)), -1.0, 1.0))))
 
 
-def print_tables(errs: dict[str, list[float]], stds: dict[str, list[float]], rows: list[tuple[float, ...]]) -> None:
+def print_tables(errs: dict[str, list[float]], stds: dict[str, list[float]], rows: Sequence[tuple[float, ...]]) -> None:
     """The issue's tables: parameter recovery and the part before / after."""
     print("\nparameter recovery (estimated - canonical truth), reported std, goal:")
     print(
