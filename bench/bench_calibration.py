@@ -3,7 +3,7 @@ spheres, and seed 003's 137.5 mm part measured before and after calibration.
 
 Each run draws a rig within SICK's and a machine shop's tolerances (range offset +-30 mm, scale
 +-1000 ppm, optical centre offsets p and q +-5 mm, tilts and zeros +-0.3 deg, motor scale
-+-1000 ppm), simulates a -90..90 deg calibration sweep of the ``room-spheres`` scene (ideal thin
++-1000 ppm), simulates calibration sweeps of the room with spheres (``--layout``; ideal thin
 beam, seed 003's noise: sigma_l = 11.67 mm), calibrates (:func:`lrms.calibration.calibrate`), and
 compares every estimated parameter with the truth (in its canonical form: the tilt about the
 shaft moved into the motor zero and q; :meth:`lrms.kinematics.RigModel.canonical`).
@@ -23,6 +23,8 @@ Artefact layouts (``--layout``; docs/calibration.md, "What limits k1 and the mot
   bar running straight away from the rig); everything else as ``room``.
 * ``network``: ``room`` with every centre-to-centre distance of the seven spheres known (21
   distances, as a laser tracker or a CMM measures a sphere network), each to ``--u-distance``.
+* ``network-large`` (the default): ``network`` in the ``room-spheres-large`` scene, every sphere
+  twice the diameter (0.4 and 0.5 m: four times the beams on each).
 
 ``--sweep-deg`` is the motor span, centred on 0 (180: -90..90; 340: -170..170, where most of
 the room is seen twice, from both halves of the 270 deg scan).
@@ -32,8 +34,12 @@ the room is seen twice, from both halves of the 270 deg scan).
 separate unknown pose per sweep (``calibrate(..., poses="separate")``); ``--sweeps`` sweeps from
 each pose.
 
-    python -m bench.bench_calibration [--runs 20] [--poses 1] [--speed 5] [--sweeps 1] [--plane-points 20000] [--seed 0]
-        [--layout room|long-bar|network] [--sweep-deg 180] [--u-distance 3e-5] [--no-part] [--lms1xx]
+    python -m bench.bench_calibration [--runs 20] [--poses 3] [--speed 20] [--sweeps 1] [--plane-points 5000] [--seed 0]
+        [--layout room|long-bar|network|network-large] [--sweep-deg 340] [--u-distance 3e-5] [--no-part] [--lms1xx]
+        [--save runs.json]
+    python -m bench.bench_calibration --combine a.json b.json   # the tables over several --save files
+
+The defaults are the documented design of docs/calibration.md ("k1 over 20 random rigs").
 
 ``--lms1xx``: also seed 003's part measured with the LMS1xx footprint sensor (noise on) as the
 service measures it (:func:`lms_part`), before (nominal mapping, uncalibrated budget) and after
@@ -44,7 +50,10 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import time
+from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 
@@ -71,7 +80,7 @@ from sim.scene import (
     get_scene,
     lms1xx_device_angles,
 )
-from sim.scene.library import ROOM_SPHERE_BAR, ROOM_SPHERES, room_spheres_artefact
+from sim.scene.library import ROOM_SPHERE_BAR, ROOM_SPHERES, ROOM_SPHERES_LARGE_FACTOR, room_spheres_artefact
 
 D = np.deg2rad
 
@@ -112,7 +121,10 @@ def layout(name: str, u_distance_m: float) -> tuple[Scene, Artefact]:
             scene.add(Sphere(centres[i], ROOM_SPHERES[i][1] / 2), remission=0.8, name=f"sphere{i}")
         dist = float(np.linalg.norm(centres[b] - centres[a]))
         art["distances_m"] = [{"a": a, "b": b, "distance_m": dist, "u_distance_m": u_distance_m}]
-    elif name == "network":
+    elif name in ("network", "network-large"):
+        if name == "network-large":
+            scene = get_scene("room-spheres-large")
+            art = room_spheres_artefact(ROOM_SPHERES_LARGE_FACTOR)
         n = len(centres)
         art["distances_m"] = [
             {"a": i, "b": j, "distance_m": float(np.linalg.norm(centres[j] - centres[i])), "u_distance_m": u_distance_m}
@@ -249,22 +261,71 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.rad2deg(np.arccos(np.clip(abs(float(a @ b)), -1.0, 1.0))))
 
 
+def print_tables(errs: dict[str, list[float]], stds: dict[str, list[float]], rows: Sequence[tuple[float, ...]]) -> None:
+    """The issue's tables: parameter recovery and the part before / after."""
+    print("\nparameter recovery (estimated - canonical truth), reported std, goal:")
+    print(
+        f"  {'param':11s} {'unit':4s} {'rms err':>9s} {'max|err|':>9s} {'mean std':>9s} {'<=3sd':>6s} {'goal':>7s} ok"
+    )
+    for name, e in errs.items():
+        unit, f = RigModel.UNITS[name]
+        ea, sa = np.asarray(e) * f, np.asarray(stds[name]) * f
+        inside = float(np.mean(np.abs(ea) <= 3 * sa))
+        goal = GOAL[name] * f
+        ok = "yes" if np.max(np.abs(ea)) <= goal else "no"
+        print(
+            f"  {name:11s} {unit:4s} {np.sqrt(np.mean(ea**2)):9.4f} {np.max(np.abs(ea)):9.4f} {np.mean(sa):9.4f} "
+            f"{100 * inside:7.0f}% {goal:7.3g}  {ok}"
+        )
+    r = np.asarray(rows)
+    print("\nseed 003 part (137.5 mm, noiseless sweep) against the ideal-rig fit, before / after calibration:")
+    print(f"  {'':24s} {'before':>12s} {'after':>12s} {'goal':>8s}")
+    print(f"  {'diameter rms (mm)':24s} {1e3 * np.sqrt(np.mean(r[:, 0] ** 2)):12.3f} "
+          f"{1e3 * np.sqrt(np.mean(r[:, 2] ** 2)):12.3f} {0.1:8.2f}")  # fmt: skip
+    print(f"  {'diameter max |err| (mm)':24s} {1e3 * np.max(np.abs(r[:, 0])):12.3f} "
+          f"{1e3 * np.max(np.abs(r[:, 2])):12.3f} {0.1:8.2f}")  # fmt: skip
+    print(f"  {'axis rms (deg)':24s} {np.sqrt(np.mean(r[:, 1] ** 2)):12.4f} {np.sqrt(np.mean(r[:, 3] ** 2)):12.4f} "
+          f"{0.02:8.3f}")  # fmt: skip
+    print(f"  {'axis max (deg)':24s} {np.max(r[:, 1]):12.4f} {np.max(r[:, 3]):12.4f} {0.02:8.3f}")
+    print(f"  variance factor of the calibrations: {np.min(r[:, 4]):.3f} .. {np.max(r[:, 4]):.3f}")
+
+
+def combine(files: list[str]) -> int:
+    """``--combine``: the tables over the runs saved by several ``--save`` files."""
+    errs: dict[str, list[float]] = {}
+    stds: dict[str, list[float]] = {}
+    rows: list[tuple[float, ...]] = []
+    for f in files:
+        d = json.loads(Path(f).read_text(encoding="utf-8"))
+        for k, v in d["errs"].items():
+            errs.setdefault(k, []).extend(v)
+            stds.setdefault(k, []).extend(d["stds"][k])
+        rows.extend(tuple(r) for r in d["rows"])
+    print(f"{len(rows)} runs from {', '.join(files)}")
+    print_tables(errs, stds, rows)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runs", type=int, default=20)
-    ap.add_argument("--speed", type=float, default=5.0, help="calibration sweep speed, deg/s (25 Hz scans)")
+    ap.add_argument("--speed", type=float, default=20.0, help="calibration sweep speed, deg/s (25 Hz scans)")
     ap.add_argument("--sweeps", type=int, default=1, help="calibration sweeps per run (independent noise)")
-    ap.add_argument("--plane-points", type=int, default=20000, help="beams used per plane")
+    ap.add_argument("--plane-points", type=int, default=5000, help="beams used per plane")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--layout", choices=("room", "long-bar", "network"), default="room")
-    ap.add_argument("--sweep-deg", type=float, default=180.0, help="motor span of a sweep, centred on 0")
+    ap.add_argument("--layout", choices=("room", "long-bar", "network", "network-large"), default="network-large")
+    ap.add_argument("--sweep-deg", type=float, default=340.0, help="motor span of a sweep, centred on 0")
     ap.add_argument("--u-distance", type=float, default=3e-5, help="u of the long bar's / network's distances, m")
-    ap.add_argument("--poses", type=int, default=1, choices=(1, 2, 3), help="rig poses, one sweep set each")
+    ap.add_argument("--poses", type=int, default=3, choices=(1, 2, 3), help="rig poses, one sweep set each")
     ap.add_argument(
         "--lms1xx", action="store_true", help="also measure the part with the LMS1xx footprint sensor: error vs U"
     )
     ap.add_argument("--no-part", action="store_true", help="skip the seed 003 part before / after")
+    ap.add_argument("--save", metavar="FILE.json", default=None, help="write the runs' errors after every run")
+    ap.add_argument("--combine", nargs="+", metavar="FILE.json", default=None, help="tables over --save files")
     args = ap.parse_args(argv)
+    if args.combine:
+        return combine(args.combine)
     rng = np.random.default_rng(args.seed)
     scene, art = layout(args.layout, args.u_distance)
     opts = CalibrationOptions(adjust=AdjustOptions(max_plane_points=args.plane_points))
@@ -312,6 +373,8 @@ def main(argv: list[str] | None = None) -> int:
             (d_before - d_ideal, angle_deg(a_before, a_ideal), d_after - d_ideal, angle_deg(a_after, a_ideal),
              res.residuals["variance_factor"])
         )  # fmt: skip
+        if args.save:
+            Path(args.save).write_text(json.dumps({"errs": errs, "stds": stds, "rows": rows}), encoding="utf-8")
         print(
             f"run {run:2d}: k0 {rig.k0 * 1e3:+6.1f} mm k1 {rig.k1 * 1e6:+6.0f} ppm  part dD before "
             f"{rows[-1][0] * 1e3:+6.2f} mm after {rows[-1][2] * 1e3:+6.3f} mm, axis before {rows[-1][1]:.3f} deg "
@@ -325,31 +388,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{args.speed} deg/s, {-args.sweep_deg / 2:g}..{args.sweep_deg / 2:g} deg, <= {args.plane_points} beams per "
         f"plane; ideal thin beam, sigma_l = 11.67 mm"
     )
-    print("\nparameter recovery (estimated - canonical truth), reported std, goal:")
-    print(
-        f"  {'param':11s} {'unit':4s} {'rms err':>9s} {'max|err|':>9s} {'mean std':>9s} {'<=3sd':>6s} {'goal':>7s} ok"
-    )
-    for name, e in errs.items():
-        unit, f = RigModel.UNITS[name]
-        ea, sa = np.asarray(e) * f, np.asarray(stds[name]) * f
-        inside = float(np.mean(np.abs(ea) <= 3 * sa))
-        goal = GOAL[name] * f
-        ok = "yes" if np.max(np.abs(ea)) <= goal else "no"
-        print(
-            f"  {name:11s} {unit:4s} {np.sqrt(np.mean(ea**2)):9.4f} {np.max(np.abs(ea)):9.4f} {np.mean(sa):9.4f} "
-            f"{100 * inside:7.0f}% {goal:7.3g}  {ok}"
-        )
-    r = np.asarray(rows)
-    print("\nseed 003 part (137.5 mm, noiseless sweep) against the ideal-rig fit, before / after calibration:")
-    print(f"  {'':24s} {'before':>12s} {'after':>12s} {'goal':>8s}")
-    print(f"  {'diameter rms (mm)':24s} {1e3 * np.sqrt(np.mean(r[:, 0] ** 2)):12.3f} "
-          f"{1e3 * np.sqrt(np.mean(r[:, 2] ** 2)):12.3f} {0.1:8.2f}")  # fmt: skip
-    print(f"  {'diameter max |err| (mm)':24s} {1e3 * np.max(np.abs(r[:, 0])):12.3f} "
-          f"{1e3 * np.max(np.abs(r[:, 2])):12.3f} {0.1:8.2f}")  # fmt: skip
-    print(f"  {'axis rms (deg)':24s} {np.sqrt(np.mean(r[:, 1] ** 2)):12.4f} {np.sqrt(np.mean(r[:, 3] ** 2)):12.4f} "
-          f"{0.02:8.3f}")  # fmt: skip
-    print(f"  {'axis max (deg)':24s} {np.max(r[:, 1]):12.4f} {np.max(r[:, 3]):12.4f} {0.02:8.3f}")
-    print(f"  variance factor of the calibrations: {np.min(r[:, 4]):.3f} .. {np.max(r[:, 4]):.3f}")
+    print_tables(errs, stds, rows)
     if lms:
         print("\nseed 003 part with the LMS1xx footprint (noise on; footprint fit; U with k = 2), before / after:")
         for label, k in (("before", 0), ("after", 1)):

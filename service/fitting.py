@@ -278,14 +278,16 @@ def _footprint_json(extra: dict[str, float]) -> dict[str, Any]:
     }
 
 
-def optics_for(config: RigConfig) -> Any:
-    """The fit's beam optics from ``[scanner.optics]`` (``None``: the thin beam)."""
+def optics_for(config: RigConfig, calibration: StoredCalibration | None = None) -> Any:
+    """The fit's beam optics from ``[scanner.optics]`` (``None``: the thin beam), with the active
+    calibration's spot scale applied when it has one (``CalibrationResult.beam_optics``)."""
     if config.optics_model == "ideal":
         return None
     from lrms.cylinder import BeamOptics
 
     o = config.scanner.optics
-    return BeamOptics(exit_diameter_m=o.spot_exit_m, divergence_rad=o.divergence_rad)
+    nominal = BeamOptics(exit_diameter_m=o.spot_exit_m, divergence_rad=o.divergence_rad)
+    return nominal if calibration is None else calibration.calibration.beam_optics(nominal)
 
 
 def fit_cylinder_result(
@@ -349,7 +351,7 @@ def fit_cylinder_result(
         monte_carlo=request.options.monte_carlo,
         rng=np.random.default_rng(seed),
         world_from_rig=cal.world_from_rig,
-        optics=optics_for(config),
+        optics=optics_for(config, calibration),
         diameter_range=_diameter_range(request),
         errors=sweep_errors(config, mapped),
         beams=beams,

@@ -33,9 +33,11 @@ from lrms.calibration.data import (
     concatenate,
 )
 from lrms.calibration.detect import DetectOptions, PlaneSeg, SphereSeg, detect_planes, detect_spheres
+from lrms.calibration.optics import SpotScale, estimate_spot_scale
 from lrms.calibration.poses import RegistrationError, merge
 from lrms.calibration.result import CalibrationResult, Identifiability, PoseFit, SurfaceFit
 from lrms.covariance import NoiseModel
+from lrms.cylinder import BeamOptics
 from lrms.kinematics import RigModel
 
 __all__ = [
@@ -56,6 +58,7 @@ __all__ = [
     "PoseFit",
     "RegistrationError",
     "SphereSpec",
+    "SpotScale",
     "SurfaceFit",
     "apply_to_points",
     "calibrate",
@@ -67,8 +70,13 @@ MIN_OBSERVATIONS = 2000
 
 @dataclass(frozen=True)
 class CalibrationOptions:
+    """``optics``: the scanner's nominal light spot (:class:`lrms.cylinder.BeamOptics`); given, the
+    spot scale is estimated from the reference spheres' limb beams (:mod:`lrms.calibration.optics`);
+    ``None`` (the thin beam): not estimated."""
+
     detect: DetectOptions = field(default_factory=DetectOptions)
     adjust: AdjustOptions = field(default_factory=AdjustOptions)
+    optics: BeamOptics | None = None
 
 
 def calibrate(
@@ -150,6 +158,7 @@ def calibrate(
     rows, metric = adj.surface_summary(names)
     surfaces = tuple(SurfaceFit(k, params, n, rms, ai) for k, params, n, rms, ai in rows)
     model = RigModel.from_vector(adj.state.rig)
+    spot = _spot_scale(adj, model, opts.optics) if opts.optics is not None else None
     return CalibrationResult(
         model=model,
         nominal=nom,
@@ -172,6 +181,26 @@ def calibrate(
         created=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         software_version=lrms.__version__,
         poses=_pose_fits(adj, sweeps) if separate else (),
+        optics=None if spot is None else {"spot_scale": spot.scale, "spot_scale_u": spot.u},
+    )
+
+
+def _spot_scale(adj: Adjustment, model: RigModel, optics: BeamOptics) -> SpotScale | None:
+    """The spot scale from the adjusted spheres' limb beams (every sweep, placed by its pose);
+    ``None`` without spheres or with too few limb beams."""
+    if not adj.state.spheres:
+        return None
+    o = adj.obs
+    org, d = adj._world(adj.state, np.arange(len(o)), *model.rays(o.alpha, o.beta, o.omega))
+    return estimate_spot_scale(
+        org,
+        d,
+        model.geometric_range(o.l),
+        [(sp.center, sp.radius_known) for sp in adj.state.spheres],
+        optics.exit_diameter_m,
+        optics.divergence_rad,
+        optics.profile_sigma,
+        adj.noise.sigma_l,
     )
 
 

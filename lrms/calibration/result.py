@@ -127,6 +127,9 @@ class CalibrationResult:
     software_version: str = ""
     #: One per sweep when the sweeps were adjusted with separate poses (empty: one shared pose).
     poses: tuple[PoseFit, ...] = ()
+    #: The scanner's spot scale from the spheres, ``{"spot_scale": s, "spot_scale_u": u}`` (multiplies
+    #: the nominal spot exit diameter and divergence); ``None`` when not estimated (thin beam, no spheres).
+    optics: dict[str, float] | None = None
 
     def __post_init__(self) -> None:
         cov = np.asarray(self.covariance, dtype=np.float64)
@@ -183,7 +186,25 @@ class CalibrationResult:
             "sources": list(self.sources),
             "table": self.table(),
             **({"poses": [p.to_dict() for p in self.poses]} if self.poses else {}),
+            **({"optics": dict(self.optics)} if self.optics is not None else {}),
         }
+
+    def beam_optics(self, nominal: Any) -> Any:
+        """``nominal`` (a :class:`lrms.cylinder.BeamOptics`) with this calibration's spot scale
+        applied (exit diameter and divergence times ``s``; ``spot_scale_u``, the relative uncertainty of
+        the spot size, ``u / s``); ``nominal``
+        itself when the calibration has no spot scale or ``nominal`` is ``None`` (thin beam)."""
+        if self.optics is None or nominal is None:
+            return nominal
+        import dataclasses
+
+        s, u = self.optics["spot_scale"], self.optics["spot_scale_u"]
+        return dataclasses.replace(
+            nominal,
+            exit_diameter_m=nominal.exit_diameter_m * s,
+            divergence_rad=nominal.divergence_rad * s,
+            spot_scale_u=min(u / s, 1.0),
+        )
 
     def to_json(self, indent: int | None = 2) -> str:
         return json.dumps(self.to_dict(), indent=indent)
@@ -206,6 +227,7 @@ class CalibrationResult:
                 created=str(d.get("created", "")),
                 software_version=str(d.get("software_version", "")),
                 poses=tuple(PoseFit.from_dict(p) for p in d.get("poses", ())),
+                optics=_optics(d.get("optics")),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise CalibrationError(f"malformed calibration: {exc}") from None
@@ -217,3 +239,12 @@ class CalibrationResult:
         except json.JSONDecodeError as exc:
             raise CalibrationError(f"a calibration file is JSON: {exc}") from None
         return cls.from_dict(data)
+
+
+def _optics(d: Any) -> dict[str, float] | None:
+    if d is None:
+        return None
+    s, u = float(d["spot_scale"]), float(d["spot_scale_u"])
+    if not (np.isfinite(s) and s > 0 and np.isfinite(u) and u >= 0):
+        raise ValueError(f"optics: spot_scale must be > 0 and spot_scale_u >= 0, got {s}, {u}")
+    return {"spot_scale": s, "spot_scale_u": u}

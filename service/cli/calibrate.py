@@ -49,6 +49,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--sigma-l-mm", type=float, default=None, help="range noise (default 11.67 mm, seed 003)")
     parser.add_argument(
+        "--optics",
+        choices=("ideal", "lms1xx"),
+        default="ideal",
+        help="the scanner's beam: ideal (thin, default) or lms1xx (8 mm + 15 mrad spot: the spot scale is estimated "
+        "from the reference spheres and stored as the calibration's optics)",
+    )
+    parser.add_argument(
         "--upload", metavar="URL", default=None, help="post the calibration to this service (base URL or the endpoint)"
     )
     parser.add_argument("--token", default=None, help="admin token for --upload (default: $LRMS_ADMIN_TOKEN)")
@@ -104,7 +111,12 @@ def run(args: argparse.Namespace) -> int:
     noise = NoiseModel() if args.sigma_l_mm is None else NoiseModel(sigma_l=args.sigma_l_mm / 1e3)
     if args.plane_points < 100:
         raise CalibrationError(f"--plane-points must be at least 100, got {args.plane_points}")
-    options = CalibrationOptions(adjust=AdjustOptions(max_plane_points=args.plane_points))
+    from lrms.cylinder import BeamOptics
+
+    options = CalibrationOptions(
+        adjust=AdjustOptions(max_plane_points=args.plane_points),
+        optics=BeamOptics() if args.optics == "lms1xx" else None,
+    )
     result = calibrate(sweeps, artefact, nominal=nominal, noise=noise, options=options, poses=args.poses)
     if args.out:
         Path(args.out).write_text(result.to_json() + "\n", encoding="utf-8")
@@ -188,5 +200,8 @@ def _print_text(d: dict[str, Any], out: str | None) -> None:
                 else " (the world: held)"
             )
         )
+    if d.get("optics"):
+        o = d["optics"]
+        print(f"spot scale from the spheres: {o['spot_scale']:.3f} (u {o['spot_scale_u']:.3f}) x the nominal spot")
     if out:
         print(f"calibration written to {out}")

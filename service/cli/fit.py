@@ -199,6 +199,8 @@ def fit_cylinder_file(args: argparse.Namespace, points: Any, calibration: Any = 
     optics = None
     if args.optics == "lms1xx":
         optics = BeamOptics(exit_diameter_m=args.spot_exit_mm / 1e3, divergence_rad=args.divergence_mrad / 1e3)
+        if calibration is not None:  # the calibration's spot scale from its reference spheres, if any
+            optics = calibration[0].beam_optics(optics)
     noise = NoiseModel() if args.sigma_l_mm is None else NoiseModel(sigma_l=args.sigma_l_mm / 1e3)
     pts = np.asarray(points, dtype=np.float64)
     rays = rays_from_points(pts, args.p, noise) if args.line_of_sight else None

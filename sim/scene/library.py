@@ -232,19 +232,26 @@ def elbow() -> Scene:
     return scene
 
 
-def room_spheres_artefact() -> dict[str, object]:
-    """The ``room-spheres`` scene's artefact description (the ``lrms calibrate --artefact`` JSON)."""
+#: ``room-spheres-large``: the same room and sphere centres with every sphere this much larger
+#: (0.4 and 0.5 m: four times the beams on each; docs/calibration.md, "k1 over 20 rigs").
+ROOM_SPHERES_LARGE_FACTOR = 2.0
+
+
+def room_spheres_artefact(diameter_factor: float = 1.0) -> dict[str, object]:
+    """The ``room-spheres`` scene's artefact description (the ``lrms calibrate --artefact`` JSON);
+    ``diameter_factor``: :data:`ROOM_SPHERES_LARGE_FACTOR` for ``room-spheres-large``."""
     a, b, dist = ROOM_SPHERE_BAR
     return {
         "planes": True,
-        "spheres": [{"diameter_m": d} for _, d in ROOM_SPHERES],
+        "spheres": [{"diameter_m": d * diameter_factor} for _, d in ROOM_SPHERES],
         "distances_m": [{"a": a, "b": b, "distance_m": dist}],
     }
 
 
-def room_spheres() -> Scene:
-    """A calibration room: six planes (``ROOM_WALLS``, turned ``ROOM_YAW_DEG``) and ``ROOM_SPHERES``."""
-    scene = Scene("room-spheres")
+def room_spheres(diameter_factor: float = 1.0, name: str = "room-spheres") -> Scene:
+    """A calibration room: six planes (``ROOM_WALLS``, turned ``ROOM_YAW_DEG``) and ``ROOM_SPHERES``
+    (diameters times ``diameter_factor``)."""
+    scene = Scene(name)
     rot = _rot_z(np.deg2rad(ROOM_YAW_DEG))
     w = ROOM_WALLS
     for name, axis, value in (
@@ -259,8 +266,13 @@ def room_spheres() -> Scene:
         normal[axis] = -np.sign(value)  # facing the rig
         scene.add(Plane(rot @ (-normal * abs(value)), rot @ normal), remission=0.5, name=name)
     for i, (centre, diameter) in enumerate(ROOM_SPHERES):
-        scene.add(Sphere(centre, diameter / 2), remission=0.8, name=f"sphere{i}")
+        scene.add(Sphere(centre, diameter_factor * diameter / 2), remission=0.8, name=f"sphere{i}")
     return scene
+
+
+def room_spheres_large() -> Scene:
+    """``room-spheres`` with every sphere :data:`ROOM_SPHERES_LARGE_FACTOR` times larger."""
+    return room_spheres(ROOM_SPHERES_LARGE_FACTOR, "room-spheres-large")
 
 
 register_scene("seed003", seed003, "seed 003: 137.5 mm cylinder on a table 2.53 m along +y, floor, wall, clutter")
@@ -273,4 +285,7 @@ register_scene("seed003-bare", seed003_bare, "seed 003's cylinder and table only
 register_scene("empty", empty, "nothing: every beam misses")
 register_scene("wall", wall, "an infinite wall at y = 3 m")
 register_scene("room-spheres", room_spheres, "calibration room: 6 planes, 7 reference spheres (a 2 m sphere bar)")
+register_scene(
+    "room-spheres-large", room_spheres_large, "calibration room: 6 planes, 7 reference spheres of 0.4 / 0.5 m"
+)
 register_scene("elbow", elbow, "a 90 deg pipe elbow, D 250 mm, A 350 mm, 1.8 m ahead; floor")

@@ -1,0 +1,117 @@
+"""The spot size from reference spheres (issue 12, item 2): on a simulated LMS1xx with a spot of
+known scale the estimator recovers it within its uncertainty from the spheres' limb beams; a
+calibration with the LMS1xx optics stores it in its JSON and applies it to the footprint fit's
+optics; without optics (the thin beam) there is none."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from lrms.calibration import Artefact, CalibrationOptions, CalibrationResult, Observations, calibrate
+from lrms.calibration.optics import estimate_spot_scale, limb_echo
+from lrms.cylinder import BeamOptics
+from lrms.kinematics import RigCalibration, RigModel
+from sim.scene import LMS1xxSensor, Plane, Scene, SensorModel, Sphere, cast_beams, lms1xx_device_angles
+from sim.scene.lms1xx import Footprint
+
+D = np.deg2rad
+#: Three spheres ahead of the rig (centre, diameter); their centre distances are known.
+SPHERES = (((0.6, 1.5, -0.3), 0.2), ((-0.8, 2.4, 0.45), 0.2), ((0.3, 3.4, -0.2), 0.25))
+TRUE_SCALE = 1.6
+
+
+def spheres_sweep(sensor: object, seed: int = 1, step_deg: float = 0.3) -> tuple[Observations, Artefact]:
+    """A step-and-scan sweep (-25..25 deg, 0.3 deg steps, beams 45..135 deg) of three spheres before
+    a wall by the nominal rig: few beams, so the footprint simulation stays quick."""
+    scene = Scene("spheres")
+    for i, (c, d) in enumerate(SPHERES):
+        scene.add(Sphere(np.array(c), d / 2), remission=0.8, name=f"sphere{i}")
+    scene.add(Plane((0.0, 4.5, 0.0), (0.0, -1.0, 0.0)), remission=0.5, name="back_wall")
+    cal = RigCalibration()
+    dev = lms1xx_device_angles(0.25)
+    dev = dev[(dev > D(45)) & (dev < D(135))]
+    mot = D(np.arange(-25.0, 25.0, step_deg))[:, None]
+    s = cast_beams(scene, cal, sensor, dev, mot, np.random.default_rng(seed))  # type: ignore[arg-type]
+    v = s.valid
+    obs = Observations.from_raw(
+        s.ranges[v], cal.alpha(np.broadcast_to(dev, v.shape))[v], cal.beta(np.broadcast_to(mot, v.shape))[v]
+    )
+    centres = [np.array(c) for c, _ in SPHERES]
+    art = Artefact.from_dict(
+        {
+            "planes": True,
+            "spheres": [{"diameter_m": d} for _, d in SPHERES],
+            "distances_m": [
+                {"a": i, "b": j, "distance_m": float(np.linalg.norm(centres[i] - centres[j]))}
+                for i in range(3)
+                for j in range(i + 1, 3)
+            ],
+        }
+    )
+    return obs, art
+
+
+def lms1xx(scale: float) -> LMS1xxSensor:
+    fp = Footprint(exit_diameter_m=0.008 * scale, divergence_rad=0.015 * scale, sub_rays=32)
+    return LMS1xxSensor(footprint=fp)
+
+
+@pytest.fixture(scope="module")
+def scaled_spot() -> CalibrationResult:
+    obs, art = spheres_sweep(lms1xx(TRUE_SCALE), step_deg=0.8)
+    return calibrate([obs], art, options=CalibrationOptions(optics=BeamOptics()))
+
+
+@pytest.mark.parametrize("scale", [TRUE_SCALE])
+def test_the_spot_scale_is_recovered_from_the_spheres_within_its_uncertainty(scale: float) -> None:
+    """The rig and the spheres' centres known (the calibration's job): the spot scale from the limb beams."""
+    obs, _ = spheres_sweep(lms1xx(scale), seed=int(10 * scale))
+    m = RigModel()
+    o, d = m.rays(obs.alpha, obs.beta)
+    got = estimate_spot_scale(
+        o, d, m.geometric_range(obs.l), [(np.array(c), dia / 2) for c, dia in SPHERES], 0.008, 0.015, 0.25, 0.012
+    )
+    assert got is not None and got.beams > 500
+    assert 0.0 < got.u < 0.1
+    assert abs(got.scale - scale) <= 2 * got.u, got
+
+
+def test_the_spot_scale_is_stored_and_applied_to_the_footprint_optics(scaled_spot: CalibrationResult) -> None:
+    """Through ``calibrate`` (here three spheres and a wall seen over 50 deg: the rig itself is poorly
+    determined, so only the presence and the plumbing are checked, not the value)."""
+    assert scaled_spot.optics is not None
+    assert scaled_spot.optics["spot_scale"] > 0.0 and scaled_spot.optics["spot_scale_u"] > 0.0
+    back = CalibrationResult.from_json(scaled_spot.to_json())
+    assert back.optics == scaled_spot.optics
+    assert json.loads(scaled_spot.to_json())["optics"]["spot_scale"] == pytest.approx(back.optics["spot_scale"])  # type: ignore[index]
+    s, u = back.optics["spot_scale"], back.optics["spot_scale_u"]  # type: ignore[index]
+    applied = back.beam_optics(BeamOptics())
+    assert applied.exit_diameter_m == pytest.approx(0.008 * s)
+    assert applied.divergence_rad == pytest.approx(0.015 * s)
+    assert applied.spot_scale_u == pytest.approx(u / s)
+    assert back.beam_optics(None) is None  # the thin beam stays thin
+
+
+def test_the_thin_beam_or_no_optics_gives_no_spot_scale() -> None:
+    obs, art = spheres_sweep(SensorModel(), step_deg=0.8)
+    res = calibrate([obs], art)  # no nominal optics given: nothing estimated
+    assert res.optics is None and "optics" not in res.to_dict()
+    bad = json.loads(res.to_json())
+    bad["optics"] = {"spot_scale": -1.0, "spot_scale_u": 0.1}
+    with pytest.raises(Exception, match="spot_scale"):
+        CalibrationResult.from_dict(bad)
+
+
+def test_limb_echo_reads_short_near_the_limb_and_thin_inside() -> None:
+    r, t = 0.1, 3.0
+    x0 = np.array([0.0, 0.05, 0.099, 0.105])
+    thin = t - np.sqrt(np.maximum(r * r - x0 * x0, 0.0))
+    rng, share = limb_echo(x0, np.full(4, t), np.full(4, r), np.full(4, 1e-4))
+    np.testing.assert_allclose(rng[:2], thin[:2], atol=2e-4)
+    assert share[0] == pytest.approx(1.0) and share[3] < 1e-6
+    big, share_big = limb_echo(x0, np.full(4, t), np.full(4, r), np.full(4, 0.013))
+    assert big[2] < thin[2] - 0.005  # a wide spot at the limb covers the sphere's nearer parts
+    assert share_big[3] > 0.2  # and still meets the sphere beyond the thin-beam silhouette
