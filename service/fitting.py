@@ -275,6 +275,9 @@ def _footprint_json(extra: dict[str, float]) -> dict[str, Any]:
         "edge_threshold": float(tau) if np.isfinite(tau) else None,
         "edge_model_u_m": float(extra.get("edge_model_u_m", 0.0)),
         "thin_beam_diameter_m": extra.get("thin_beam_diameter_m"),
+        # the fit's diameter u from J^T J and from the cost's profile in the radius (the larger is used)
+        "u_jacobian_m": extra.get("footprint_u_jtj_m"),
+        "u_profile_m": extra.get("footprint_u_profile_m"),
     }
 
 
