@@ -32,11 +32,12 @@ lower Akaike criterion (the Gaussian ``-2 log L`` under the common range noise `
 residuals truncated at the gate, on the same beams for every family: the first-hit family's
 widened sigmas of ``share_u`` weight its fit but are not compared); the thin-beam model itself
 competes too (clouds without a footprint). What
-is not estimated is carried as a budget row, ``fit.extra["edge_model_u_m"]`` (standard
-uncertainty of the diameter): the effective spot size (SICK's figures read as the 1/e^2 diameter
-of a Gaussian: our reading, with a relative standard uncertainty ``spot_scale_u``, propagated by
-the fit's sensitivity to it) and, when the data do not decide between the two families (AIC
-difference below :data:`MODE_DECISIVE`), half the difference of their diameters.
+is not estimated is carried as two budget rows (standard uncertainties of the diameter):
+``fit.extra["edge_model_u_m"]``, the effective spot size (SICK's figures read as the 1/e^2
+diameter of a Gaussian: our reading, with a relative standard uncertainty ``spot_scale_u``,
+propagated by the fit's sensitivity to it), and ``fit.extra["edge_family_u_m"]``, the model
+choice: the root-mean-square difference of each family's diameter (thin beam included) from the
+reported one, weighted by the families' Akaike weights ``exp(-dAIC / 2)`` (normalised).
 """
 
 from __future__ import annotations
@@ -467,7 +468,8 @@ def footprint_fit(
     Returns a :class:`CylinderFit` whose covariance is that of the chosen family's fit (with the
     threshold's uncertainty for a first-hit fit), scaled by ``max(1, chi2/dof)`` (the range noise of
     a real receiver exceeds the noise model at weak and inclined echoes), and whose ``extra`` holds
-    ``edge_model_u_m`` (the budget row of what is not estimated: spot size, undecided family),
+    ``edge_model_u_m`` (the budget row of the spot size, not estimated), ``edge_family_u_m`` (the
+    budget row of the model choice, :func:`family_spread`; ``akaike_weight_*`` its weights),
     ``edge_mode_first`` (1 first hit, 0 energy-weighted, -1 the thin beam won), ``edge_threshold``
     (the fitted tau, first hit only), ``edge_spot_sensitivity_m`` (d diameter / d relative spot
     size), ``thin_beam_diameter_m``, ``aic_weighted`` / ``aic_first`` / ``aic_thin``.
@@ -517,6 +519,14 @@ def footprint_fit(
         **{f"aic_{m}": float(v) for m, v in _aics(dropped, frame, work, optics, gate).items()},
         **{f"aic_{m}": float(v) for m, v in aic.items()},
     }
+    # the model choice's uncertainty: every family's diameter (a dropped one's at its subsample
+    # solution) about the reported one, weighted by the Akaike weights of all families
+    diam: dict[str, float] = {s.mode: float(2.0 * frame.unpack(s.theta[:5])[2]) for s in [*dropped, *solved]}
+    diam["thin"] = float(fit.diameter)
+    crit: dict[str, float] = {m: extra[f"aic_{m}"] for m in diam}
+    chosen = diam["thin"] if aic_thin < aic[best.mode] else diam[best.mode]
+    u_family, weights = family_spread(diam, crit, chosen)
+    extra.update({"edge_family_u_m": u_family, **{f"akaike_weight_{m}": w for m, w in weights.items()}})
     if aic_thin < aic[best.mode]:
         return replace(fit, extra={**extra, "edge_mode_first": -1.0, "edge_model_u_m": 0.0})
     jac = best.jac
@@ -545,10 +555,6 @@ def footprint_fit(
     dtheta = -jtj_inv @ (jac.T @ ((res_hi - res_lo) / 0.02))
     spot_sens = float(2.0 * dtheta[4])
     u_spot = abs(spot_sens) * optics.spot_scale_u
-    u_mode = 0.0
-    if len(solved) == 2 and abs(aic[solved[0].mode] - aic[solved[1].mode]) < MODE_DECISIVE:
-        radii = [frame.unpack(s.theta[:5])[2] for s in solved]
-        u_mode = float(abs(radii[0] - radii[1]))  # half the diameter difference
     cyl = frame.cylinder(best.theta[:5]).with_point_near(pts[idx].mean(axis=0))
     return replace(
         fit,
@@ -564,7 +570,7 @@ def footprint_fit(
             "edge_mode_first": 1.0 if best.mode == "first" else 0.0,
             "edge_threshold": best.tau if best.mode == "first" else float("nan"),
             "edge_spot_sensitivity_m": spot_sens,
-            "edge_model_u_m": float(np.hypot(u_spot, u_mode)),
+            "edge_model_u_m": float(u_spot),
             "footprint_beams": float(n_res),
             "footprint_u_jtj_m": float(2.0 * np.sqrt(max(var_jtj, 0.0))),
             "footprint_u_profile_m": float(2.0 * np.sqrt(max(var_prof, 0.0))),
@@ -572,6 +578,24 @@ def footprint_fit(
             "footprint_u_sandwich_m": float(2.0 * np.sqrt(max(cov_sand[4, 4], 0.0))),
         },
     )
+
+
+def family_spread(
+    diameters: dict[str, float], criteria: dict[str, float], chosen: float
+) -> tuple[float, dict[str, float]]:
+    """The model choice's standard uncertainty of the diameter: ``sqrt(sum_i w_i (d_i - chosen)^2)``
+    with the Akaike weights ``w_i = exp(-(AIC_i - AIC_min) / 2) / sum`` of the families ``i``
+    (``diameters`` and ``criteria`` keyed alike). Returns it and the weights."""
+    if not diameters or set(diameters) != set(criteria):
+        raise FitError("one criterion per family diameter is needed")
+    names = sorted(diameters)
+    a = np.array([criteria[m] for m in names])
+    d = np.array([diameters[m] for m in names])
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(d))):
+        raise FitError("family diameters and criteria must be finite")
+    w = np.exp(-0.5 * (a - a.min()))
+    w = w / w.sum()
+    return float(np.sqrt(np.sum(w * (d - chosen) ** 2))), {m: float(x) for m, x in zip(names, w, strict=True)}
 
 
 def _fit_families(

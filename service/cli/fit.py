@@ -277,7 +277,8 @@ def _print_text(result: dict[str, Any]) -> None:
         thin = fp["thin_beam_diameter_m"]
         tau = "" if fp["edge_threshold"] is None else f", threshold {100 * fp['edge_threshold']:.0f} %"
         print(
-            f"footprint: edge model {fp['edge_mode']}{tau}, u(edge) = {fp['edge_model_u_m'] * 1e3:.3f} mm"
+            f"footprint: edge model {fp['edge_mode']}{tau}, u(edge) = {fp['edge_model_u_m'] * 1e3:.3f} mm,"
+            f" u(family) = {fp.get('edge_family_u_m', 0.0) * 1e3:.3f} mm"
             + ("" if thin is None else f", thin-beam fit {thin * 1e3:.3f} mm")
         )
     if u.get("monte_carlo"):

@@ -130,8 +130,13 @@ def test_the_footprint_fit_removes_most_of_the_thin_beams_bias() -> None:
     err = fit.diameter - SEED003_DIAMETER
     assert abs(err) < 0.25 * (thin.diameter - SEED003_DIAMETER)
     assert fit.extra["edge_mode_first"] in (0.0, 1.0)
-    u = float(np.hypot(fit.std_diameter, fit.extra["edge_model_u_m"]))
+    u = float(np.sqrt(fit.std_diameter**2 + fit.extra["edge_model_u_m"] ** 2 + fit.extra["edge_family_u_m"] ** 2))
     assert abs(err) < 2 * u
+    # the model choice's row: the Akaike weights of the thin beam and both families sum to 1
+    weights = {k: v for k, v in fit.extra.items() if k.startswith("akaike_weight_")}
+    assert set(weights) == {"akaike_weight_thin", "akaike_weight_weighted", "akaike_weight_first"}
+    assert sum(weights.values()) == pytest.approx(1.0)
+    assert fit.extra["edge_family_u_m"] >= 0.0
     # the fit's (type A) u is the larger of the Gauss-Newton one and the cost profile's in the radius
     u_jtj, u_prof = fit.extra["footprint_u_jtj_m"], fit.extra["footprint_u_profile_m"]
     assert u_jtj > 0 and u_prof > 0
@@ -300,3 +305,23 @@ def test_the_warm_started_first_hit_solve_and_its_jacobian_match_the_cold_ones()
     )
     for j in range(theta.size):
         assert np.linalg.norm(jac[:, j] - ref[:, j]) <= 0.03 * np.linalg.norm(ref[:, j])
+
+
+def test_the_model_choice_u_is_the_akaike_weighted_spread_of_the_families() -> None:
+    """family_spread: sqrt(sum w_i (d_i - chosen)^2), w_i = exp(-dAIC_i / 2) normalised."""
+    from lrms.cylinder.footprint import family_spread
+
+    u, w = family_spread({"thin": 0.150, "weighted": 0.138}, {"thin": 100.0, "weighted": 100.0}, 0.138)
+    assert w == pytest.approx({"thin": 0.5, "weighted": 0.5})
+    assert u == pytest.approx(0.012 / np.sqrt(2.0))
+    # 10 apart (MODE_DECISIVE): the other family keeps e^-5 / (1 + e^-5) of the weight
+    u, w = family_spread({"first": 0.140, "weighted": 0.137}, {"first": 110.0, "weighted": 100.0}, 0.137)
+    w_first = np.exp(-5.0) / (1.0 + np.exp(-5.0))
+    assert w["first"] == pytest.approx(w_first)
+    assert u == pytest.approx(0.003 * np.sqrt(w_first))
+    # one family alone: nothing to choose
+    assert family_spread({"first": 0.14}, {"first": 5.0}, 0.14)[0] == 0.0
+    with pytest.raises(FitError, match="one criterion per family"):
+        family_spread({"first": 0.14}, {"weighted": 5.0}, 0.14)
+    with pytest.raises(FitError, match="finite"):
+        family_spread({"first": 0.14}, {"first": float("nan")}, 0.14)
