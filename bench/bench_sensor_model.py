@@ -188,6 +188,11 @@ def run_case(g: Geometry, draw: Draw, sweeps: int, cloud: str, seed: int, fits: 
             except LrmsError:
                 row.failed += 1
                 continue
+            except (ArithmeticError, ValueError, np.linalg.LinAlgError) as ex:
+                # an unattended 400-sweep run must not die on one sweep: counted as failed, printed
+                print(f"    !! {kind}: {type(ex).__name__}: {ex}", flush=True)
+                row.failed += 1
+                continue
             err = fit.diameter - g.diameter
             if abs(err) > 0.5 * g.diameter:
                 row.gross += 1
