@@ -185,11 +185,12 @@ def run_case(g: Geometry, draw: Draw, sweeps: int, cloud: str, seed: int, fits: 
                         optics=BeamOptics(),
                         diameter_range=nominal_diameter_range(g.diameter),
                     )
-            except LrmsError:
+            except LrmsError as ex:
+                print(f"    !! {kind}: {type(ex).__name__}: {ex}", flush=True)
                 row.failed += 1
                 continue
             except (ArithmeticError, ValueError, np.linalg.LinAlgError) as ex:
-                # an unattended 400-sweep run must not die on one sweep: counted as failed, printed
+                # not ours: an unattended 400-sweep run must not die on one sweep
                 print(f"    !! {kind}: {type(ex).__name__}: {ex}", flush=True)
                 row.failed += 1
                 continue
