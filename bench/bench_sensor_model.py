@@ -24,8 +24,18 @@ whose d +- 2 u covers the truth.
 
 ``--fit footprint`` fits the same clouds with the beam-footprint model (``fit_cylinder(...,
 optics=BeamOptics())``: LMS1xx spot, edge family and threshold estimated, not told) and a nominal
-diameter (+-10 %); its u is the fit's with the edge-model row (``extra["edge_model_u_m"]``) in
-quadrature. ``--fit both`` prints both fits per case, on the same clouds.
+diameter (+-10 %); its u is the fit's with the edge-model rows (``extra["edge_model_u_m"]``, the
+spot size, and ``extra["edge_family_u_m"]``, the model choice) in quadrature. ``--fit both`` prints
+both fits per case, on the same clouds.
+
+For a long unattended run (the >= 400-sweep coverage check of issue 11): ``--progress N`` prints a
+line every N sweeps of a case, ``--cache DIR`` keeps each scene's ray cast (the 128-sub-ray cast
+takes minutes) in DIR for the next run, ``--no-ideal`` leaves out the ideal-sensor rows, and a
+summary table at the end gives per case n, mean error +- s.e., spread, mean U (k = 2) and the
+coverage with its exact (Clopper-Pearson) binomial 95 % interval. Example:
+``PYTHONPATH=. OMP_NUM_THREADS=1 python -m bench.bench_sensor_model --only seed003 --clouds roi
+--fit footprint --no-offset --no-ideal --edges 0.3:first,0.3:weighted --sweeps 400 --progress 20
+--cache /tmp/lrms-geom``.
 
 Run: ``.venv/bin/python -m bench.bench_sensor_model [--sweeps 20] [--only seed003|parts] [--clouds roi,room]
 [--fit thin|footprint|both]
@@ -37,12 +47,15 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import pickle
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import beta as beta_dist
 
 from lrms.covariance import NoiseModel
 from lrms.cylinder import BeamOptics, fit_cylinder, nominal_diameter_range
@@ -63,6 +76,20 @@ BEAMS = BEAMS[(np.deg2rad(50) <= BEAMS) & (np.deg2rad(130) >= BEAMS)]
 FOOTPRINT = Footprint()
 EDGE_FAMILY = [(thr, mode) for thr in (0.1, 0.3, 0.5) for mode in ("weighted", "first")]
 OFFSET_ROW = True
+IDEAL_ROW = True
+PROGRESS = 0
+#: (scene, cloud, fit, case, row) of every case run, for the summary table.
+SUMMARY: list[tuple[str, str, str, str, Row]] = []
+
+
+def coverage_interval(k: int, n: int, level: float = 0.95) -> tuple[float, float]:
+    """Exact (Clopper-Pearson) binomial interval of a coverage of ``k`` in ``n``."""
+    if n == 0:
+        return 0.0, 1.0
+    a = (1.0 - level) / 2.0
+    lo = 0.0 if k == 0 else float(beta_dist.ppf(a, k, n - k + 1))
+    hi = 1.0 if k == n else float(beta_dist.ppf(1.0 - a, k + 1, n - k))
+    return lo, hi
 
 
 @dataclass
@@ -158,7 +185,13 @@ def run_case(g: Geometry, draw: Draw, sweeps: int, cloud: str, seed: int, fits: 
                         optics=BeamOptics(),
                         diameter_range=nominal_diameter_range(g.diameter),
                     )
-            except LrmsError:
+            except LrmsError as ex:
+                print(f"    !! {kind}: {type(ex).__name__}: {ex}", flush=True)
+                row.failed += 1
+                continue
+            except (ArithmeticError, ValueError, np.linalg.LinAlgError) as ex:
+                # not ours: an unattended 400-sweep run must not die on one sweep
+                print(f"    !! {kind}: {type(ex).__name__}: {ex}", flush=True)
                 row.failed += 1
                 continue
             err = fit.diameter - g.diameter
@@ -168,13 +201,21 @@ def run_case(g: Geometry, draw: Draw, sweeps: int, cloud: str, seed: int, fits: 
             row.errors.append(err)
             if "edge_mode_first" in fit.extra:
                 row.modes.append({1.0: "1st", 0.0: "wtd"}.get(fit.extra["edge_mode_first"], "thin"))
-            row.u.append(float(np.hypot(gum_interval(fit).std, fit.extra.get("edge_model_u_m", 0.0))))
+            x = fit.extra
+            u_fit = gum_interval(fit).std
+            row.u.append(
+                float(np.sqrt(u_fit**2 + x.get("edge_model_u_m", 0.0) ** 2 + x.get("edge_family_u_m", 0.0) ** 2))
+            )
+        done = len(rows[fits[0]].errors) + rows[fits[0]].failed + rows[fits[0]].gross
+        if PROGRESS and done % PROGRESS == 0:
+            for kind, row in rows.items():
+                print(f"    .. {kind} {done}/{sweeps}: {row.text()}", flush=True)
     return rows
 
 
 def bench_scene(g: Geometry, sweeps: int, clouds: list[str], family: bool, seed: int, fits: list[str]) -> None:
     base = LMS1xxSensor(footprint=FOOTPRINT)
-    cases: list[tuple[str, Draw]] = [("ideal thin beam (seed 003 noise)", ideal_draw(g))]
+    cases: list[tuple[str, Draw]] = [("ideal thin beam (seed 003 noise)", ideal_draw(g))] if IDEAL_ROW else []
     edges = EDGE_FAMILY if family else [(0.3, "weighted")]
     for thr, mode in edges:
         sensor = dataclasses.replace(base, edge_threshold=thr, range_mode=mode)  # type: ignore[arg-type]
@@ -190,6 +231,32 @@ def bench_scene(g: Geometry, sweeps: int, clouds: list[str], family: bool, seed:
             dt = time.perf_counter() - t0
             for kind, row in rows.items():
                 print(f"  {cloud:4s} {kind:9s} {label:36s} {row.text()}  ({dt:5.1f} s)", flush=True)
+                SUMMARY.append((g.name, cloud, kind, label, row))
+
+
+def summary_table() -> None:
+    """Per case: n, mean error +- s.e., spread, mean U (k = 2), coverage of d +- U with its
+    Clopper-Pearson 95 % interval (the goal: 95 % within it)."""
+    print("\n== summary (errors and U in mm; covered: |error| <= U = 2 u; 95 % binomial interval)")
+    print(
+        f"  {'scene':34s} {'cloud':5s} {'fit':9s} {'case':36s} {'n':>4s} {'mean':>7s} {'s.e.':>5s}"
+        f" {'std':>6s} {'mean U':>7s} {'covered':>9s} {'95 % interval':>15s}"
+    )
+    for scene, cloud, kind, label, row in SUMMARY:
+        n = len(row.errors)
+        if n == 0:
+            print(f"  {scene:34s} {cloud:5s} {kind:9s} {label:36s} {0:4d}  (failed {row.failed}, gross {row.gross})")
+            continue
+        e = 1e3 * np.array(row.errors)
+        big_u = 2e3 * np.array(row.u)
+        k = int(np.count_nonzero(np.abs(e) <= big_u))
+        lo, hi = coverage_interval(k, n)
+        sd = e.std(ddof=1) if n > 1 else float("nan")
+        print(
+            f"  {scene:34s} {cloud:5s} {kind:9s} {label:36s} {n:4d} {e.mean():+7.2f} {sd / np.sqrt(n):5.2f}"
+            f" {sd:6.2f} {big_u.mean():7.2f} {k:4d}/{n:<4d} [{100 * lo:5.1f}, {100 * hi:5.1f}] %"
+            + (f"  (failed {row.failed}, gross {row.gross})" if row.failed or row.gross else "")
+        )
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -203,10 +270,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--sub-rays", type=int, default=Footprint().sub_rays, help="sub-rays per beam of the LMS1xx")
     parser.add_argument("--no-offset", action="store_true", help="leave out the +15 mm range offset row")
     parser.add_argument("--parts", default=None, help="comma list of D:R (m) for --only parts (default: all six)")
+    parser.add_argument("--no-ideal", action="store_true", help="leave out the ideal thin-beam rows")
+    parser.add_argument("--progress", type=int, default=0, help="print a line every N sweeps of a case")
+    parser.add_argument("--cache", default=None, help="directory keeping each scene's ray cast between runs")
     args = parser.parse_args(argv)
-    global FOOTPRINT, OFFSET_ROW
+    global FOOTPRINT, OFFSET_ROW, IDEAL_ROW, PROGRESS
     FOOTPRINT = Footprint(sub_rays=args.sub_rays)
     OFFSET_ROW = not args.no_offset
+    IDEAL_ROW = not args.no_ideal
+    PROGRESS = max(args.progress, 0)
+    if args.sweeps < 1:
+        parser.error("--sweeps must be >= 1")
     fits = ["thin", "footprint"] if args.fit == "both" else [args.fit]
     if args.edges:
         EDGE_FAMILY[:] = [(float(e.split(":")[0]), e.split(":")[1]) for e in args.edges.split(",")]
@@ -228,9 +302,27 @@ def main(argv: list[str] | None = None) -> None:
         scenes += [(f"room, D {d:.1f} m at {r:.1f} m", d, r, False) for d, r in parts]
     for label, diameter, distance, family in scenes:
         t0 = time.perf_counter()
-        g = cast_geometry(label, part_in_room(diameter, distance), diameter, sensor)
+        g = cached_geometry(args.cache, label, diameter, distance, sensor)
         print(f"\n(ray cast of {label}: {time.perf_counter() - t0:.1f} s)")
         bench_scene(g, args.sweeps, clouds, family, args.seed, fits)
+    summary_table()
+
+
+def cached_geometry(cache: str | None, label: str, diameter: float, distance: float, sensor: LMS1xxSensor) -> Geometry:
+    """The scene's ray cast, from ``cache`` (a directory) when it holds one for the same part,
+    distance and sub-ray count (written there after a fresh cast)."""
+    if cache is None:
+        return cast_geometry(label, part_in_room(diameter, distance), diameter, sensor)
+    path = Path(cache) / f"geometry-d{1e3 * diameter:.1f}-r{distance:.3f}-sub{sensor.footprint.sub_rays}.pkl"
+    if path.exists():
+        with path.open("rb") as f:
+            g: Geometry = pickle.load(f)
+        return dataclasses.replace(g, name=label)
+    g = cast_geometry(label, part_in_room(diameter, distance), diameter, sensor)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("wb") as f:
+        pickle.dump(g, f, protocol=pickle.HIGHEST_PROTOCOL)
+    return g
 
 
 if __name__ == "__main__":

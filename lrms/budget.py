@@ -27,7 +27,8 @@ independently per beam (the noise of alpha and beta beyond the fit's range-only 
 ``c = sqrt(sum_i c_i^2)``; an input drawn once per scan (motor timing jitter, encoder
 quantisation: every beam of a scan shares its beta) gives ``c = sqrt(sum_scans (sum_(i in scan)
 c_i)^2)``. The fit's own row (type A) is its covariance's ``u(d)``. Rows given as a diameter
-contribution (the footprint / edge model's ``fit.extra["edge_model_u_m"]``, a calibration's
+contribution (the footprint / edge model's ``fit.extra["edge_model_u_m"]``, the edge family's
+``fit.extra["edge_family_u_m"]`` (model choice, Akaike-weighted spread), a calibration's
 covariance through :class:`CalibrationInput`, ``extra_rows``) enter as they are.
 """
 
@@ -372,6 +373,7 @@ SOURCES = (
     "range scale",
     "temperature drift",
     "footprint / edge model",
+    "edge family (model choice)",
     "alpha zero",
     "alpha noise",
     "beta noise",
@@ -473,6 +475,37 @@ def _edge_row(fit: CylinderFit) -> BudgetRow:
     )
 
 
+def _family_row(fit: CylinderFit) -> BudgetRow:
+    u = fit.extra.get("edge_family_u_m")
+    if u is None:
+        return BudgetRow(
+            "edge family (model choice)",
+            "B",
+            0.0,
+            "m",
+            1.0,
+            0.0,
+            "not evaluated",
+            "no footprint fit: no choice among edge families was made",
+        )
+    w = ", ".join(
+        f"{k.removeprefix('akaike_weight_')} {v:.2g}"
+        for k, v in sorted(fit.extra.items())
+        if k.startswith("akaike_weight_")
+    )
+    return BudgetRow.of(
+        "edge family (model choice)",
+        "B",
+        float(u),
+        "m",
+        1.0,
+        "normal",
+        "the families' diameters about the reported one, weighted by their Akaike weights"
+        + (f" ({w})" if w else "")
+        + " (fit.extra['edge_family_u_m'])",
+    )
+
+
 def cylinder_budget(
     fit: CylinderFit,
     rays: Rays | None = None,
@@ -539,6 +572,7 @@ def cylinder_budget(
                 f"range drift {err.temperature_coeff_m_per_k * 1e3:g} mm/K x temperature uncertainty",
             ),
             _edge_row(fit),
+            _family_row(fit),
             BudgetRow.of(
                 "alpha zero",
                 "B",
@@ -595,7 +629,7 @@ def cylinder_budget(
             ),
         ]
     else:
-        rows.append(_edge_row(fit))
+        rows += [_edge_row(fit), _family_row(fit)]
     if calibration is not None:
         rows = [r for r in rows if r.source not in calibration.replaces]
         rows.append(calibration.row())
@@ -607,7 +641,7 @@ def cylinder_budget(
 
 #: Rows whose inputs the Monte Carlo replicas draw on the beams themselves (the others, given as a
 #: diameter contribution, are drawn as a normal error of the replica's diameter).
-BEAM_SOURCES = tuple(s for s in SOURCES if s != "footprint / edge model")
+BEAM_SOURCES = tuple(s for s in SOURCES if s not in ("footprint / edge model", "edge family (model choice)"))
 
 
 def _draw(dist: str, u: float, shape: tuple[int, ...], rng: np.random.Generator) -> FloatArray:

@@ -274,7 +274,15 @@ def _footprint_json(extra: dict[str, float]) -> dict[str, Any]:
         "edge_mode": {1.0: "first", 0.0: "weighted"}.get(code, "thin"),
         "edge_threshold": float(tau) if np.isfinite(tau) else None,
         "edge_model_u_m": float(extra.get("edge_model_u_m", 0.0)),
+        # the model choice's row (Akaike-weighted spread of the families' diameters) and the weights
+        "edge_family_u_m": float(extra.get("edge_family_u_m", 0.0)),
+        "akaike_weights": {
+            k.removeprefix("akaike_weight_"): float(v) for k, v in extra.items() if k.startswith("akaike_weight_")
+        },
         "thin_beam_diameter_m": extra.get("thin_beam_diameter_m"),
+        # the fit's diameter u from J^T J and from the cost's profile in the radius (the larger is used)
+        "u_jacobian_m": extra.get("footprint_u_jtj_m"),
+        "u_profile_m": extra.get("footprint_u_profile_m"),
     }
 
 

@@ -32,11 +32,12 @@ lower Akaike criterion (the Gaussian ``-2 log L`` under the common range noise `
 residuals truncated at the gate, on the same beams for every family: the first-hit family's
 widened sigmas of ``share_u`` weight its fit but are not compared); the thin-beam model itself
 competes too (clouds without a footprint). What
-is not estimated is carried as a budget row, ``fit.extra["edge_model_u_m"]`` (standard
-uncertainty of the diameter): the effective spot size (SICK's figures read as the 1/e^2 diameter
-of a Gaussian: our reading, with a relative standard uncertainty ``spot_scale_u``, propagated by
-the fit's sensitivity to it) and, when the data do not decide between the two families (AIC
-difference below :data:`MODE_DECISIVE`), half the difference of their diameters.
+is not estimated is carried as two budget rows (standard uncertainties of the diameter):
+``fit.extra["edge_model_u_m"]``, the effective spot size (SICK's figures read as the 1/e^2
+diameter of a Gaussian: our reading, with a relative standard uncertainty ``spot_scale_u``,
+propagated by the fit's sensitivity to it), and ``fit.extra["edge_family_u_m"]``, the model
+choice: the root-mean-square difference of each family's diameter (thin beam included) from the
+reported one, weighted by the families' Akaike weights ``exp(-dAIC / 2)`` (normalised).
 """
 
 from __future__ import annotations
@@ -219,6 +220,7 @@ def first_hit_range(
     sd: float,
     tau: float,
     c: FloatArray,
+    start: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """The first-hit range of each beam in closed form: the range ``T`` at which the share of the
     spot whose sub-rays meet the cylinder at a range ``<= T`` reaches ``min(tau, 0.999 c)``.
@@ -232,7 +234,8 @@ def first_hit_range(
     safeguarded Newton iteration. Returns ``T`` and ``dT / dF`` at ``T`` (capped at 1 m per unit
     share): where the threshold falls near the limb, ``F`` is flat and a small error of the share
     moves ``T`` by millimetres. (The sub-rays' tilt across the beam changes their path length
-    by ``t tilt^2 / 2``, about 0.02 mm at one sigma: left out.)
+    by ``t tilt^2 / 2``, about 0.02 mm at one sigma: left out.) ``start``: a previous solution
+    (the solver's last step) to start Newton from, where it lies inside the bracket.
     """
     target = np.minimum(tau, 0.999 * c)
     p = np.sqrt(np.maximum(1.0 - cos_axis * cos_axis, 1e-12))
@@ -242,17 +245,23 @@ def first_hit_range(
     hi = t_ca + 6.0 * ys + 1e-9
     # start: the front's one-sided quantile, well inside the bracket
     big_t = np.clip(t_ca - depth + 0.5 * (1.0 - np.minimum(target / np.maximum(c, 1e-12), 1.0)) * depth, lo, hi)
+    if start is not None and start.shape == big_t.shape:
+        big_t = np.where((start > lo) & (start < hi), start, big_t)
+    # safeguarded Newton on the beams not yet converged only (most take 3-5 steps, a few bisect)
+    act = np.arange(big_t.size)
     for _ in range(60):
-        f, fp = _first_share(big_t, x0, t_ca, cos_axis, radius, s0, sd)
-        f = f - target
-        lo = np.where(f < 0, big_t, lo)
-        hi = np.where(f >= 0, big_t, hi)
-        step = big_t - f / np.maximum(fp, 1e-300)
-        new = np.where((step > lo) & (step < hi), step, 0.5 * (lo + hi))
-        done = np.max(np.abs(new - big_t)) < 1e-11
-        big_t = new
-        if done:
+        if act.size == 0:
             break
+        bt = big_t[act]
+        f, fp = _first_share(bt, x0[act], t_ca[act], cos_axis[act], radius, s0, sd)
+        f = f - target[act]
+        la = np.where(f < 0, bt, lo[act])
+        ha = np.where(f >= 0, bt, hi[act])
+        lo[act], hi[act] = la, ha
+        step = bt - f / np.maximum(fp, 1e-300)
+        new = np.where((step > la) & (step < ha), step, 0.5 * (la + ha))
+        big_t[act] = new
+        act = act[np.abs(new - bt) >= 1e-11]
     _, fp = _first_share(big_t, x0, t_ca, cos_axis, radius, s0, sd)
     return np.asarray(big_t, dtype=np.float64), np.asarray(1.0 / np.maximum(fp, 1.0), dtype=np.float64)
 
@@ -311,8 +320,32 @@ def _first_rows(
     return np.asarray(np.concatenate(rows), dtype=np.float64)
 
 
+@dataclass
+class _Warm:
+    """One solve's memory of the first-hit ranges: the last parameters and their solution (the
+    Jacobian is asked at the point just evaluated) and a warm start for the next Newton solve."""
+
+    theta: FloatArray | None = None
+    big_t: FloatArray | None = None
+    slope: FloatArray | None = None
+
+    def solve(self, theta: FloatArray, g: _Geom, tau: float) -> tuple[FloatArray, FloatArray]:
+        same = self.theta is not None and self.theta.shape == theta.shape and np.array_equal(self.theta, theta)
+        if same and self.big_t is not None and self.slope is not None:
+            return self.big_t, self.slope
+        big_t, slope = first_hit_range(g.x0, g.t_ca, g.cos_axis, g.radius, g.s0, g.sd, tau, g.c)
+        self.theta, self.big_t, self.slope = theta.copy(), big_t, slope
+        return big_t, slope
+
+
 def _residuals(
-    theta: FloatArray, frame: _Frame, rays: Rays, optics: BeamOptics, mode: EdgeMode, scale: float = 1.0
+    theta: FloatArray,
+    frame: _Frame,
+    rays: Rays,
+    optics: BeamOptics,
+    mode: EdgeMode,
+    scale: float = 1.0,
+    warm: _Warm | None = None,
 ) -> FloatArray:
     a, w, r = frame.unpack(theta[:5])
     if mode == "weighted":
@@ -320,7 +353,10 @@ def _residuals(
         return np.asarray((rays.ranges - pred) / rays.sigma_l, dtype=np.float64)
     tau = float(expit(theta[5]))
     g = _geometry(a, w, float(r), rays, optics, scale)
-    big_t, slope = first_hit_range(g.x0, g.t_ca, g.cos_axis, g.radius, g.s0, g.sd, tau, g.c)
+    if warm is not None and scale == 1.0:
+        big_t, slope = warm.solve(theta, g, tau)
+    else:
+        big_t, slope = first_hit_range(g.x0, g.t_ca, g.cos_axis, g.radius, g.s0, g.sd, tau, g.c)
     return _first_rows(g, big_t, slope, tau, rays, optics)
 
 
@@ -328,7 +364,9 @@ def _residuals(
 _JAC_STEP = np.array([1e-6, 1e-6, 1e-6, 1e-6, 1e-6, 1e-4])
 
 
-def _first_jacobian(theta: FloatArray, frame: _Frame, rays: Rays, optics: BeamOptics) -> FloatArray:
+def _first_jacobian(
+    theta: FloatArray, frame: _Frame, rays: Rays, optics: BeamOptics, warm: _Warm | None = None
+) -> FloatArray:
     """Jacobian of the first-hit rows without re-solving ``F(T) = target`` per column.
 
     Each parameter is stepped in the cheap closed forms (the beam geometry, the covered share
@@ -342,7 +380,7 @@ def _first_jacobian(theta: FloatArray, frame: _Frame, rays: Rays, optics: BeamOp
     a, w, r = frame.unpack(theta[:5])
     tau = float(expit(theta[5]))
     g = _geometry(a, w, float(r), rays, optics, 1.0)
-    big_t, slope = first_hit_range(g.x0, g.t_ca, g.cos_axis, g.radius, g.s0, g.sd, tau, g.c)
+    big_t, slope = (warm or _Warm()).solve(theta, g, tau)
     f0, fp0 = _first_share(big_t, g.x0, g.t_ca, g.cos_axis, g.radius, g.s0, g.sd)
     f0 = f0 - np.minimum(tau, 0.999 * g.c)
     flat = np.flatnonzero(fp0 < 1.0)  # F flat at T (a spot that barely meets the part): re-solved
@@ -378,10 +416,11 @@ def _solve(frame: _Frame, rays: Rays, optics: BeamOptics, mode: EdgeMode, start:
     lo = np.array([-0.05, -0.05, -spot, -spot, -spot, -8.0][: start.size])
     hi = np.array([0.05, 0.05, spot, spot, 0.25 * spot, 8.0][: start.size])
     jac: object = "2-point"
+    warm = _Warm() if mode == "first" else None
     if mode == "first" and _JACOBIAN == "implicit":
-        jac = lambda th: _first_jacobian(th, frame, rays, optics)  # noqa: E731
+        jac = lambda th: _first_jacobian(th, frame, rays, optics, warm)  # noqa: E731
     out = least_squares(
-        lambda th: _residuals(th, frame, rays, optics, mode),
+        lambda th: _residuals(th, frame, rays, optics, mode, 1.0, warm),
         np.clip(start, lo + 1e-12, hi - 1e-12),
         jac=jac,
         bounds=(lo, hi),
@@ -422,6 +461,7 @@ def footprint_fit(
     modes: tuple[EdgeMode, ...] = ("weighted", "first"),
     work_size: int = 4000,
     gate: float = 4.0,
+    decide_size: int = 1000,
 ) -> CylinderFit:
     """Refit a thin-beam line-of-sight ``fit`` (its inliers; ``rays`` one per point of ``pts``)
     with the expected echo of each beam's footprint, the edge family chosen by the data.
@@ -429,7 +469,8 @@ def footprint_fit(
     Returns a :class:`CylinderFit` whose covariance is that of the chosen family's fit (with the
     threshold's uncertainty for a first-hit fit), scaled by ``max(1, chi2/dof)`` (the range noise of
     a real receiver exceeds the noise model at weak and inclined echoes), and whose ``extra`` holds
-    ``edge_model_u_m`` (the budget row of what is not estimated: spot size, undecided family),
+    ``edge_model_u_m`` (the budget row of the spot size, not estimated), ``edge_family_u_m`` (the
+    budget row of the model choice, :func:`family_spread`; ``akaike_weight_*`` its weights),
     ``edge_mode_first`` (1 first hit, 0 energy-weighted, -1 the thin beam won), ``edge_threshold``
     (the fitted tau, first hit only), ``edge_spot_sensitivity_m`` (d diameter / d relative spot
     size), ``thin_beam_diameter_m``, ``aic_weighted`` / ``aic_first`` / ``aic_thin``.
@@ -448,44 +489,45 @@ def footprint_fit(
     frame = _Frame.at(fit.cylinder.with_point_near(pts[use].mean(axis=0)))
     thin_res = los_residuals(np.zeros(5), frame, work.origins, work.dirs, work.ranges, work.sigma_l, work.sigma_perp)
     aic_thin = float(np.sum(np.minimum(thin_res * thin_res, gate * gate))) + 2 * 5
-    solved: list[_Solved] = []
-    for mode in modes:
-        start = np.zeros(5) if mode == "weighted" else np.array([0, 0, 0, 0, 0, float(logit(0.3))])
-        try:
-            if mode == "first" and optics.share_u > 0.0:
-                # from the thin beam's solution, down-weighted edge beams let the fit settle on a
-                # wrong (large) radius with a high threshold: fit unweighted first, then weighted
-                start = _solve(frame, work, replace(optics, share_u=0.0), mode, start).theta
-            first = _solve(frame, work, optics, mode, start)
-            # drop gross outliers under the footprint model, refit once
-            res = _residuals(first.theta, frame, work, optics, mode)[: work.ranges.size]
-            ok = np.abs(res) < gate
-            if np.count_nonzero(ok) < 30:
-                continue
-            solved.append(
-                _solve(frame, work.subset(np.flatnonzero(ok)), optics, mode, first.theta) if not np.all(ok) else first
-            )
-        except FitError:
-            continue
+    # the families are first fitted on a subsample of the work beams; only those the subsample
+    # leaves plausible (AIC within MODE_DECISIVE of the best, the thin beam included) are refined
+    # on all of them, from the subsample's solution
+    starts = {m: (np.zeros(5) if m == "weighted" else np.array([0, 0, 0, 0, 0, float(logit(0.3))])) for m in modes}
+    plausible = list(modes)
+    dropped: list[_Solved] = []
+    if work.ranges.size > 2 * decide_size and len(modes) > 1:
+        pick = np.sort(np.random.default_rng(5).choice(work.ranges.size, decide_size, replace=False))
+        sub_solved = _fit_families(frame, work.subset(pick), optics, modes, starts, gate)
+        if sub_solved:
+            aic_sub = _aics(sub_solved, frame, work.subset(pick), optics, gate)
+            thin_sub = float(np.sum(np.minimum(thin_res[pick] ** 2, gate * gate))) + 2 * 5
+            floor = min(min(aic_sub.values()), thin_sub)
+            plausible = [s.mode for s in sub_solved if aic_sub[s.mode] - floor < MODE_DECISIVE]
+            starts.update({s.mode: s.theta for s in sub_solved})
+            if not plausible:  # the thin beam wins clearly: refine the best family for the record
+                plausible = [min(sub_solved, key=lambda s: aic_sub[s.mode]).mode]
+            dropped = [s for s in sub_solved if s.mode not in plausible]
+    solved = _fit_families(frame, work, optics, tuple(plausible), starts, gate)
     if not solved:
         raise FitError("the footprint fit failed in every edge family")
-    # the criterion: -2 log L under the common range noise sigma_l (the first hit's widened sigmas
-    # are the fit's weights, not part of the compared likelihood), on the same beams for every
-    # family, range rows truncated at the gate, plus the first hit's coverage rows, + 2 parameters
-    n_work = work.ranges.size
-    common = replace(optics, share_u=0.0)
-    aic = {}
-    for s in solved:
-        rows = _residuals(s.theta, frame, work, common, s.mode)
-        rr = rows[:n_work]
-        aic[s.mode] = float(np.sum(np.minimum(rr * rr, gate * gate)) + np.sum(rows[n_work:] ** 2)) + 2 * s.n_par
+    aic = _aics(solved, frame, work, optics, gate)
     best = min(solved, key=lambda s: aic[s.mode])
     extra = {
         **fit.extra,
         "thin_beam_diameter_m": float(fit.diameter),
         "aic_thin": aic_thin,
+        # a family dropped on the subsample: its criterion on all work beams at the subsample's solution
+        **{f"aic_{m}": float(v) for m, v in _aics(dropped, frame, work, optics, gate).items()},
         **{f"aic_{m}": float(v) for m, v in aic.items()},
     }
+    # the model choice's uncertainty: every family's diameter (a dropped one's at its subsample
+    # solution) about the reported one, weighted by the Akaike weights of all families
+    diam: dict[str, float] = {s.mode: float(2.0 * frame.unpack(s.theta[:5])[2]) for s in [*dropped, *solved]}
+    diam["thin"] = float(fit.diameter)
+    crit: dict[str, float] = {m: extra[f"aic_{m}"] for m in diam}
+    chosen = diam["thin"] if aic_thin < aic[best.mode] else diam[best.mode]
+    u_family, weights = family_spread(diam, crit, chosen)
+    extra.update({"edge_family_u_m": u_family, **{f"akaike_weight_{m}": w for m, w in weights.items()}})
     if aic_thin < aic[best.mode]:
         return replace(fit, extra={**extra, "edge_mode_first": -1.0, "edge_model_u_m": 0.0})
     jac = best.jac
@@ -496,16 +538,24 @@ def footprint_fit(
     chi2 = float(np.sum(range_rows * range_rows))
     chi2_dof = chi2 / dof
     cov_full = jtj_inv * max(1.0, chi2_dof)
+    # the sandwich (heteroscedasticity-consistent, HC1) covariance: the edge beams, whose first hit
+    # sits on the limb's steep range profile, scatter more than sigma_l and carry the radius
+    rows_all = _residuals(best.theta, frame, best.rays, optics, best.mode)
+    meat = (jac * (rows_all * rows_all)[:, None]).T @ jac
+    cov_sand = jtj_inv @ meat @ jtj_inv * (rows_all.size / max(rows_all.size - best.n_par, 1))
+    # the profile of the cost in the radius: the first hit's radius trades off against tau along a
+    # flat, rough ridge that the Gauss-Newton curvature J^T J does not see (its u was 4-5x below
+    # the spread of noise-only replicas); the variance is taken as the larger of the two
+    var_jtj = float(cov_full[4, 4])
+    var_prof = _profile_variance(best, frame, optics) * max(1.0, chi2_dof)
+    prof_scale = max(1.0, var_prof / max(var_jtj, 1e-30))
+    cov_full = cov_full * prof_scale
     # sensitivity of the solution to the spot size: d theta / d scale = -(J^T J)^-1 J^T d res / d scale
     res_lo = _residuals(best.theta, frame, best.rays, optics, best.mode, scale=0.99)
     res_hi = _residuals(best.theta, frame, best.rays, optics, best.mode, scale=1.01)
     dtheta = -jtj_inv @ (jac.T @ ((res_hi - res_lo) / 0.02))
     spot_sens = float(2.0 * dtheta[4])
     u_spot = abs(spot_sens) * optics.spot_scale_u
-    u_mode = 0.0
-    if len(solved) == 2 and abs(aic[solved[0].mode] - aic[solved[1].mode]) < MODE_DECISIVE:
-        radii = [frame.unpack(s.theta[:5])[2] for s in solved]
-        u_mode = float(abs(radii[0] - radii[1]))  # half the diameter difference
     cyl = frame.cylinder(best.theta[:5]).with_point_near(pts[idx].mean(axis=0))
     return replace(
         fit,
@@ -521,7 +571,120 @@ def footprint_fit(
             "edge_mode_first": 1.0 if best.mode == "first" else 0.0,
             "edge_threshold": best.tau if best.mode == "first" else float("nan"),
             "edge_spot_sensitivity_m": spot_sens,
-            "edge_model_u_m": float(np.hypot(u_spot, u_mode)),
+            "edge_model_u_m": float(u_spot),
             "footprint_beams": float(n_res),
+            "footprint_u_jtj_m": float(2.0 * np.sqrt(max(var_jtj, 0.0))),
+            "footprint_u_profile_m": float(2.0 * np.sqrt(max(var_prof, 0.0))),
+            "footprint_profile_scale": float(prof_scale),
+            "footprint_u_sandwich_m": float(2.0 * np.sqrt(max(cov_sand[4, 4], 0.0))),
         },
     )
+
+
+def family_spread(
+    diameters: dict[str, float], criteria: dict[str, float], chosen: float
+) -> tuple[float, dict[str, float]]:
+    """The model choice's standard uncertainty of the diameter: ``sqrt(sum_i w_i (d_i - chosen)^2)``
+    with the Akaike weights ``w_i = exp(-(AIC_i - AIC_min) / 2) / sum`` of the families ``i``
+    (``diameters`` and ``criteria`` keyed alike). Returns it and the weights."""
+    if not diameters or set(diameters) != set(criteria):
+        raise FitError("one criterion per family diameter is needed")
+    names = sorted(diameters)
+    a = np.array([criteria[m] for m in names])
+    d = np.array([diameters[m] for m in names])
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(d))):
+        raise FitError("family diameters and criteria must be finite")
+    w = np.exp(-0.5 * (a - a.min()))
+    w = w / w.sum()
+    return float(np.sqrt(np.sum(w * (d - chosen) ** 2))), {m: float(x) for m, x in zip(names, w, strict=True)}
+
+
+def _fit_families(
+    frame: _Frame,
+    work: Rays,
+    optics: BeamOptics,
+    modes: tuple[EdgeMode, ...],
+    starts: dict[EdgeMode, FloatArray],
+    gate: float,
+) -> list[_Solved]:
+    """Each edge family fitted from ``starts``, gross outliers (beyond ``gate`` sigmas under the
+    footprint model) dropped and refitted once; a family that fails is left out."""
+    solved: list[_Solved] = []
+    for mode in modes:
+        start = starts[mode]
+        try:
+            if mode == "first" and optics.share_u > 0.0:
+                # from the thin beam's solution, down-weighted edge beams let the fit settle on a
+                # wrong (large) radius with a high threshold: fit unweighted first, then weighted
+                start = _solve(frame, work, replace(optics, share_u=0.0), mode, start).theta
+            first = _solve(frame, work, optics, mode, start)
+            res = _residuals(first.theta, frame, work, optics, mode)[: work.ranges.size]
+            ok = np.abs(res) < gate
+            if np.count_nonzero(ok) < 30:
+                continue
+            solved.append(
+                _solve(frame, work.subset(np.flatnonzero(ok)), optics, mode, first.theta) if not np.all(ok) else first
+            )
+        except FitError:
+            continue
+    return solved
+
+
+def _aics(solved: list[_Solved], frame: _Frame, work: Rays, optics: BeamOptics, gate: float) -> dict[str, float]:
+    """The model-choice criterion of each solved family: ``-2 log L`` under the common range noise
+    ``sigma_l`` (the first hit's widened sigmas are the fit's weights, not part of the compared
+    likelihood), on the same beams for every family, range rows truncated at the gate, plus the
+    first hit's coverage rows, + 2 per parameter."""
+    n_work = work.ranges.size
+    common = replace(optics, share_u=0.0)
+    aic: dict[str, float] = {}
+    for s in solved:
+        rows = _residuals(s.theta, frame, work, common, s.mode)
+        rr = rows[:n_work]
+        aic[s.mode] = float(np.sum(np.minimum(rr * rr, gate * gate)) + np.sum(rows[n_work:] ** 2)) + 2 * s.n_par
+    return aic
+
+
+#: Radius step (m) of the cost's profile and the floor of its rise (a flat profile's u stays finite).
+PROFILE_STEP = 1e-3
+PROFILE_FLOOR = 0.05
+
+
+def _profile_variance(best: _Solved, frame: _Frame, optics: BeamOptics) -> float:
+    """Variance of the radius from the profile of the cost: the other parameters refitted with the
+    radius held at ``r +- PROFILE_STEP``; the mean rise ``dC`` of the cost (chi-square) over the
+    lowest of the three gives ``var = step^2 / dC`` (a parabola: dC = 1 at one sigma). The rise is
+    floored at ``PROFILE_FLOOR`` (u at most 4.5 steps)."""
+    idx = [i for i in range(best.theta.size) if i != 4]
+    costs = []
+    for h in (-PROFILE_STEP, PROFILE_STEP):
+        full = best.theta.copy()
+        full[4] += h
+
+        def fun(p: FloatArray, full: FloatArray = full) -> FloatArray:
+            t = full.copy()
+            t[idx] = p
+            return _residuals(t, frame, best.rays, optics, best.mode)
+
+        jac: object = "2-point"
+        if best.mode == "first":
+
+            def jac_fn(p: FloatArray, full: FloatArray = full) -> FloatArray:
+                t = full.copy()
+                t[idx] = p
+                return _first_jacobian(t, frame, best.rays, optics)[:, idx]
+
+            jac = jac_fn
+        out = least_squares(
+            fun,
+            best.theta[idx],
+            jac=jac,
+            method="trf",
+            x_scale=np.array([1e-3, 1e-3, 1e-3, 1e-3, 0.3][: len(idx)]),
+            diff_step=np.full(len(idx), 1e-5),
+            ftol=_FTOL,
+            max_nfev=4 * len(idx),
+        )
+        costs.append(float(2.0 * out.cost))
+    rise = 0.5 * (costs[0] + costs[1]) - min(best.cost, *costs)
+    return float(PROFILE_STEP**2 / max(rise, PROFILE_FLOOR))

@@ -279,7 +279,8 @@ def _print_text(result: dict[str, Any]) -> None:
         thin = fp["thin_beam_diameter_m"]
         tau = "" if fp["edge_threshold"] is None else f", threshold {100 * fp['edge_threshold']:.0f} %"
         print(
-            f"footprint: edge model {fp['edge_mode']}{tau}, u(edge) = {fp['edge_model_u_m'] * 1e3:.3f} mm"
+            f"footprint: edge model {fp['edge_mode']}{tau}, u(edge) = {fp['edge_model_u_m'] * 1e3:.3f} mm,"
+            f" u(family) = {fp.get('edge_family_u_m', 0.0) * 1e3:.3f} mm"
             + ("" if thin is None else f", thin-beam fit {thin * 1e3:.3f} mm")
         )
     if u.get("monte_carlo"):
@@ -294,11 +295,11 @@ def budget_table(u: dict[str, Any]) -> str:
     """The budget of a result's ``uncertainty`` as a text table (u in mm)."""
     lines = [
         "uncertainty budget (GUM):",
-        f"  {'source':<24s} {'type':<4s} {'u_x':>10s} {'unit':<4s} {'c (m/unit)':>11s} {'u (mm)':>8s}  distribution",
+        f"  {'source':<26s} {'type':<4s} {'u_x':>10s} {'unit':<4s} {'c (m/unit)':>11s} {'u (mm)':>8s}  distribution",
     ]
     for r in u["budget"]:
         lines.append(
-            f"  {r['source']:<24s} {r['type']:<4s} {r['u_x']:>10.4g} {r['unit']:<4s} {r['c']:>11.4g} "
+            f"  {r['source']:<26s} {r['type']:<4s} {r['u_x']:>10.4g} {r['unit']:<4s} {r['c']:>11.4g} "
             f"{r['u_m'] * 1e3:>8.4f}  {r['distribution']}"
         )
     lines.append(f"  combined u_c = {u['combined_m'] * 1e3:.3f} mm ({u['correlation']})")

@@ -23,7 +23,7 @@ from lrms.budget import (
     scan_groups,
 )
 from lrms.covariance import NoiseModel
-from lrms.cylinder import CylinderFit, Rays, _Frame, fit_cylinder
+from lrms.cylinder import BeamOptics, CylinderFit, Rays, _Frame, fit_cylinder
 from lrms.errors import LrmsError
 from lrms.uncertainty import _replica_fit, _replica_problem, ideal_points, monte_carlo_interval
 
@@ -70,6 +70,34 @@ def test_rows_sum_in_quadrature_and_u_is_k_times_u_c(
     # no edge model in this fit: the row is there, marked not evaluated
     edge = b.row("footprint / edge model")
     assert edge.u_m == 0 and edge.distribution == "not evaluated" and "no edge model" in edge.note
+
+
+def test_a_footprint_fit_carries_the_edge_family_row(
+    sweep_fit: tuple[CylinderFit, np.ndarray, Rays, BeamGeometry],
+) -> None:
+    """With a footprint fit (lrms.cylinder.footprint) the model choice among the edge families has
+    its own row, fit.extra["edge_family_u_m"] (the families' diameters about the reported one,
+    Akaike-weighted), beside the spot-size row; the rows still sum in quadrature and both are drawn
+    as diameter contributions by the Monte Carlo replicas. Without it the row is "not evaluated"."""
+    _, pts, rays, beams = sweep_fit
+    thin_row = _budget(sweep_fit).row("edge family (model choice)")
+    assert thin_row.u_m == 0 and thin_row.distribution == "not evaluated"
+    fp = fit_cylinder(pts, rays=rays, noise=NM, initial=seed.seed_cylinder(), optics=BeamOptics())
+    assert "edge_family_u_m" in fp.extra
+    b = cylinder_budget(fp, rays.subset(fp.inliers), beams.subset(fp.inliers), noise=NM)
+    assert tuple(r.source for r in b.rows) == SOURCES
+    fam = b.row("edge family (model choice)")
+    assert fam.u_m == pytest.approx(fp.extra["edge_family_u_m"], rel=1e-12, abs=1e-18)
+    assert fam.distribution == "normal" and "Akaike" in fam.note
+    u = np.array([r.u_m for r in b.rows])
+    assert b.combined == pytest.approx(float(np.sqrt(np.sum(u * u))), rel=1e-12)
+    assert "edge family (model choice)" not in BEAM_SOURCES
+    # a non-zero model-choice u enters the combined value and the replicas' diameter-level draw
+    wide = dataclasses.replace(fp, extra={**fp.extra, "edge_family_u_m": 3e-3})
+    b2 = cylinder_budget(wide, rays.subset(fp.inliers), beams.subset(fp.inliers), noise=NM)
+    assert b2.combined == pytest.approx(float(np.sqrt(b.combined**2 - fam.u_m**2 + 9e-6)), rel=1e-9)
+    edge = b2.row("footprint / edge model").u_m
+    assert b2.diameter_u_beyond(BEAM_SOURCES) == pytest.approx(float(np.hypot(edge, 3e-3)), rel=1e-9)
 
 
 def _refit(fit: CylinderFit, rays: Rays) -> float:

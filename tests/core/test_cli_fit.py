@@ -64,7 +64,11 @@ def test_fit_without_line_of_sight_is_the_biased_orthogonal_fit(
     out = json.loads(capsys.readouterr().out)
     assert out["line_of_sight"] is False and out["uncertainty"]["critical_point"]["k"] == 2
     # a cloud from elsewhere: no beams, so only the fit's own row and the (absent) edge model
-    assert [r["source"] for r in out["uncertainty"]["budget"]] == ["fit (type A)", "footprint / edge model"]
+    assert [r["source"] for r in out["uncertainty"]["budget"]] == [
+        "fit (type A)",
+        "footprint / edge model",
+        "edge family (model choice)",
+    ]
     assert out["bias_correction_m"] is None  # defined for the line-of-sight fit only
     # on this rig's one-sided view the orthogonal fit comes out several mm small
     assert -0.012 < out["diameter_m"] - d_true < -0.004
