@@ -655,6 +655,8 @@ def _profile_variance(best: _Solved, frame: _Frame, optics: BeamOptics) -> float
     radius held at ``r +- PROFILE_STEP``; the mean rise ``dC`` of the cost (chi-square) over the
     lowest of the three gives ``var = step^2 / dC`` (a parabola: dC = 1 at one sigma). The rise is
     floored at ``PROFILE_FLOOR`` (u at most 4.5 steps)."""
+    from scipy.optimize import least_squares  # on first use (see _solve)
+
     idx = [i for i in range(best.theta.size) if i != 4]
     costs = []
     for h in (-PROFILE_STEP, PROFILE_STEP):
