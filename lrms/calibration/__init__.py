@@ -16,6 +16,7 @@ from __future__ import annotations
 import datetime
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -122,19 +123,38 @@ def calibrate(
                 raise type(exc)(f"sweep {k + 1}: {exc}") from None
         offsets = np.cumsum([0, *(len(s) for s in sweeps)])[:-1]
         planes, spheres, initial = merge([f[0] for f in found], [f[1] for f in found], [int(o) for o in offsets])
-        adj = Adjustment(obs, planes, spheres, artefact, nom, nm, opts.adjust, which=which, poses=initial)
     else:
         planes, spheres = _detect(obs, artefact, nom, opts.detect)
-        adj = Adjustment(obs, planes, spheres, artefact, nom, nm, opts.adjust)
-    adj._init_sigma()
-    names, _, _ = adj.choose_free()
-    adj.solve(names)  # a first estimate from the loose segmentation of the nominal cloud
-    adj.resegment(opts.detect.min_plane_points, opts.adjust.outlier_sigma)
-    names, held, eig = adj.choose_free()
-    adj.solve(names)
-    adj.reject_outliers(names)
-    r, jac, iterations = adj.solve(names)
-    cov_free, s0sq, dof = adj.covariance(names, jac, r)
+        initial = None
+
+    def adjust(spot: tuple[float, float] | None) -> tuple[Adjustment, list[str], dict[str, str], Any, Any, Any]:
+        adj = Adjustment(obs, planes, spheres, artefact, nom, nm, opts.adjust, which=which if separate else None,
+                         poses=initial, spot=spot)  # fmt: skip
+        adj._init_sigma()
+        names, _, _ = adj.choose_free()
+        adj.solve(names)  # a first estimate from the loose segmentation of the nominal cloud
+        adj.resegment(opts.detect.min_plane_points, opts.adjust.outlier_sigma)
+        names, held, eig = adj.choose_free()
+        adj.solve(names)
+        adj.reject_outliers(names)
+        r, jac, iterations = adj.solve(names)
+        return adj, names, held, eig, (r, jac, iterations), adj.covariance(names, jac, r)
+
+    # with optics, two stages: the rig with the nominal spot (footprint-censored, sphere ranges
+    # corrected), the spot scale from the limb beams with that rig; when the scale differs from the
+    # one assumed by more than 2 u, the rig again with the estimated spot and the scale again
+    spot_scale = 1.0
+    spot: SpotScale | None = None
+    for _stage in range(2 if opts.optics is not None else 1):
+        adj, names, held, eig, (r, _jac, iterations), (cov_free, s0sq, dof) = adjust(
+            None if opts.optics is None else _spot_sigma(opts.optics, spot_scale)
+        )
+        if opts.optics is None:
+            break
+        spot = _spot_scale(adj, RigModel.from_vector(adj.state.rig), opts.optics, names, cov_free)
+        if spot is None or abs(spot.scale - spot_scale) <= 2 * spot.u:
+            break
+        spot_scale = spot.scale
 
     idx = [RigModel.NAMES.index(n) for n in names]
     cov = np.zeros((len(RigModel.NAMES), len(RigModel.NAMES)))
@@ -158,7 +178,6 @@ def calibrate(
     rows, metric = adj.surface_summary(names)
     surfaces = tuple(SurfaceFit(k, params, n, rms, ai) for k, params, n, rms, ai in rows)
     model = RigModel.from_vector(adj.state.rig)
-    spot = _spot_scale(adj, model, opts.optics) if opts.optics is not None else None
     return CalibrationResult(
         model=model,
         nominal=nom,
@@ -182,26 +201,53 @@ def calibrate(
         software_version=lrms.__version__,
         poses=_pose_fits(adj, sweeps) if separate else (),
         optics=None if spot is None else {"spot_scale": spot.scale, "spot_scale_u": spot.u},
+        censored=dict(adj.censored) if opts.optics is not None else None,
     )
 
 
-def _spot_scale(adj: Adjustment, model: RigModel, optics: BeamOptics) -> SpotScale | None:
+def _spot_sigma(optics: BeamOptics, scale: float) -> tuple[float, float]:
+    """The spot's Gaussian sigma ``(s0, sd)`` (``sigma = s0 + sd x range``) for ``scale`` x the nominal."""
+    return (optics.profile_sigma * optics.exit_diameter_m * scale, optics.profile_sigma * optics.divergence_rad * scale)
+
+
+def _spot_scale(
+    adj: Adjustment, model: RigModel, optics: BeamOptics, names: list[str], cov_free: np.ndarray
+) -> SpotScale | None:
     """The spot scale from the adjusted spheres' limb beams (every sweep, placed by its pose);
-    ``None`` without spheres or with too few limb beams."""
+    ``None`` without spheres or with too few limb beams. Its ``u`` includes the rig's: the scale's
+    sensitivity to each free rig parameter (central differences, one standard deviation each way)
+    propagated with the rig's covariance ``cov_free`` (the spheres' centres' is not included)."""
     if not adj.state.spheres:
         return None
     o = adj.obs
-    org, d = adj._world(adj.state, np.arange(len(o)), *model.rays(o.alpha, o.beta, o.omega))
-    return estimate_spot_scale(
-        org,
-        d,
-        model.geometric_range(o.l),
-        [(sp.center, sp.radius_known) for sp in adj.state.spheres],
-        optics.exit_diameter_m,
-        optics.divergence_rad,
-        optics.profile_sigma,
-        adj.noise.sigma_l,
-    )
+    spheres = [(sp.center, sp.radius_known) for sp in adj.state.spheres]
+
+    def estimate(vec: np.ndarray) -> SpotScale | None:
+        m = RigModel.from_vector(vec)
+        org, d = adj._world(adj.state, np.arange(len(o)), *m.rays(o.alpha, o.beta, o.omega))
+        return estimate_spot_scale(
+            org, d, m.geometric_range(o.l), spheres, optics.exit_diameter_m, optics.divergence_rad,
+            optics.profile_sigma, adj.noise.sigma_l,
+        )  # fmt: skip
+
+    base = model.vector()
+    spot = estimate(base)
+    if spot is None or not names:
+        return spot
+    std = np.sqrt(np.clip(np.diag(cov_free), 0, None))
+    grad = np.zeros(len(names))
+    for k, name in enumerate(names):
+        if std[k] <= 0:
+            continue
+        j = RigModel.NAMES.index(name)
+        up, dn = base.copy(), base.copy()
+        up[j] += std[k]
+        dn[j] -= std[k]
+        hi, lo = estimate(up), estimate(dn)
+        if hi is not None and lo is not None:
+            grad[k] = (hi.scale - lo.scale) / (2 * std[k])
+    u_rig2 = float(grad @ cov_free @ grad)
+    return SpotScale(spot.scale, float(np.sqrt(spot.u**2 + max(u_rig2, 0.0))), spot.beams, spot.rms_m)
 
 
 def _detect(

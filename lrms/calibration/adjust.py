@@ -38,6 +38,7 @@ from scipy.spatial.transform import Rotation
 
 from lrms.calibration.data import Artefact, CalibrationError, DetectionError, DistanceSpec, Observations
 from lrms.calibration.detect import PlaneSeg, SphereSeg
+from lrms.calibration.optics import limb_echo
 from lrms.covariance import NoiseModel
 from lrms.kinematics import RigModel
 
@@ -98,6 +99,9 @@ MIN_EIGENVALUE = 1.0
 MIN_COS = 0.3
 #: A surface needs this many usable beams to stay in the adjustment.
 MIN_SURFACE_BEAMS = 30
+#: With a finite spot: a beam is censored when its spot, out to this many spot sigmas, is not wholly
+#: on its own surface (the simulated LMS1xx's sub-rays reach 1.5 spot radii = 3 sigma).
+CENSOR_SIGMA = 3.0
 
 
 @dataclass(frozen=True)
@@ -138,6 +142,28 @@ def _distance(x: FloatArray, surf: _Plane | _Sphere) -> FloatArray:
     return np.asarray(np.abs(np.linalg.norm(x - surf.center, axis=1) - surf.radius), dtype=np.float64)
 
 
+def sphere_spot_bias(depth: FloatArray, radius: float, sigma: FloatArray, t: FloatArray) -> FloatArray:
+    """How much longer the energy-weighted echo of a Gaussian spot (standard deviation ``sigma``)
+    wholly on a sphere reads than its centre ray, whose chord half-depth is ``depth`` (``sqrt(R^2 -
+    x0^2)``, ``x0`` the axis' distance from the centre), at range ``t``: to second order in ``sigma``,
+    ``sigma^2 (3 depth^2 - R^2) / (2 depth^3) - 2 sigma^2 x0^2 / (depth^2 t)`` (``sigma^2 / R`` on
+    the centre line). The adjustment uses the numerical quadrature
+    (:func:`lrms.calibration.optics.limb_echo`) instead: toward the limb (``x0 -> R - 3 sigma``) the
+    higher orders grow (with ``R`` = 0.2 m, ``sigma`` = 13 mm at 3 m: 0.5 mm off there).
+
+    Derivation (docs/calibration.md): a sub-ray at ``(x0 + u, v)`` meets the sphere at ``t_ca -
+    f(u, v)``, ``f = sqrt(R^2 - (x0 + u)^2 - v^2) ~ D - x0 u / D - R^2 u^2 / (2 D^3) - v^2 / (2 D)``;
+    its energy ``~ cos(incidence) = f / R ~ (D - x0 u / D) / R``. Over the Gaussian (``E u^2 = E v^2 =
+    sigma^2``) the mean of ``f`` is ``D - sigma^2 (R^2 / D^2 + 1) / (2 D)``, and the weight's
+    correlation with the path adds ``-x0^2 sigma^2 / D^3``; with ``x0^2 = R^2 - D^2`` the range's
+    shift is the first term; the energy's ``1 / t^2`` (``d ln w / du = -2 x0 / (D t)``) adds the second."""
+    x0sq = radius**2 - depth**2
+    return np.asarray(
+        np.square(sigma) * ((3.0 * depth**2 - radius**2) / (2.0 * depth**3) - 2.0 * x0sq / (depth**2 * t)),
+        dtype=np.float64,
+    )
+
+
 def _basis(n: FloatArray) -> FloatArray:
     a = np.eye(3)[int(np.argmin(np.abs(n)))]
     e1 = np.cross(n, a)
@@ -172,10 +198,21 @@ class Adjustment:
         options: AdjustOptions,
         which: IntArray | None = None,
         poses: Sequence[FloatArray] | None = None,
+        spot: tuple[float, float] | None = None,
     ) -> None:
         """``which``: the sweep (pose) of every beam; ``poses``: the initial 4x4 world_from_rig of each
-        sweep (the first is the world: the identity, held). Without them, one pose for all beams."""
+        sweep (the first is the world: the identity, held). Without them, one pose for all beams.
+        ``spot``: the light spot's Gaussian sigma ``s0 + sd x range`` as ``(s0, sd)`` (m, rad); given,
+        beams whose spot is not wholly on their surface are censored (:meth:`_censor_footprint`) and
+        the sphere beams' expected range carries the spot's curvature bias (:func:`sphere_spot_bias`);
+        ``None``: the thin beam."""
         self.obs = obs
+        self.spot = spot
+        #: Per beam: how much longer its energy-weighted echo on its sphere reads than its centre
+        #: ray (set by :meth:`_censor_footprint` for the kept sphere beams; 0 elsewhere).
+        self._bias = np.zeros(len(obs))
+        #: Beams censored for the footprint, by surface ("plane k", "sphere i" with the artefact's index).
+        self.censored: dict[str, int] = {}
         self.which = np.zeros(len(obs), dtype=np.intp) if which is None else np.asarray(which, dtype=np.intp)
         if self.which.shape != (len(obs),):
             raise CalibrationError("one sweep index per observation")
@@ -274,6 +311,8 @@ class Adjustment:
             s = np.sqrt(np.maximum(disc, (MIN_COS / 2 * surf.radius) ** 2))
             t = a - s
             cos = s / surf.radius
+            if self.spot is not None:
+                t = t + self._bias[idx]
         return o.l[idx] - (t - m.k0) / (1.0 + m.k1), t, cos, d, org
 
     def _surface_residuals(
@@ -493,7 +532,48 @@ class Adjustment:
         for surf in surfaces:
             _, _, cos, _, _ = self._los(self.state.rig, surf.index, surf)
             surf.index = surf.index[cos >= MIN_COS]
+        if self.spot is not None:
+            self._censor_footprint()
         self._drop_thin()
+
+    def _censor_footprint(self) -> None:
+        """Drop the beams whose spot (out to :data:`CENSOR_SIGMA` sigmas, ``sigma = s0 + sd t``) is
+        not wholly on their own surface, under the current estimate: on a sphere, the beam axis
+        further than ``R - k sigma`` from the centre (the limb: the echo is pulled toward the covered
+        part); on a plane, the hit within ``k sigma / cos(incidence)`` of another plane (corners and
+        edges: the spot's long axis on an inclined plane) or the spot touching a sphere in front
+        of it (``lateral distance < R + k sigma``). The counts per surface go to :attr:`censored`."""
+        assert self.spot is not None
+        s0, sd = self.spot
+        k = CENSOR_SIGMA
+        self.censored = {}
+        planes, spheres = self.state.planes, self.state.spheres
+        for n, pl in enumerate(planes):
+            _, t, cos, d, org = self._los(self.state.rig, pl.index, pl)
+            sig = s0 + sd * np.maximum(t, 0.0)
+            hit = org + t[:, None] * d
+            bad = np.zeros(pl.index.size, dtype=bool)
+            for other in planes:
+                if other is not pl:
+                    bad |= _distance(hit, other) < k * sig / np.maximum(cos, MIN_COS)
+            for sp in spheres:
+                w = sp.center - org
+                tc = np.einsum("ij,ij->i", w, d)
+                lateral = np.linalg.norm(w - tc[:, None] * d, axis=1)
+                bad |= (tc < t) & (lateral < sp.radius + k * (s0 + sd * np.maximum(tc, 0.0)))
+            self.censored[f"plane {n}"] = int(bad.sum())
+            pl.index = pl.index[~bad]
+        for sp in spheres:
+            self._bias[sp.index] = 0.0
+            _, t, cos, _, _ = self._los(self.state.rig, sp.index, sp)
+            depth = sp.radius * cos
+            x0 = np.sqrt(np.maximum(sp.radius**2 - depth**2, 0.0))
+            bad = x0 > sp.radius - k * (s0 + sd * t)
+            self.censored[f"sphere {sp.artefact_index}"] = int(bad.sum())
+            sp.index = sp.index[~bad]
+            t_ca = (t + depth)[~bad]
+            echo, _ = limb_echo(x0[~bad], t_ca, np.full(t_ca.size, sp.radius), s0 + sd * t_ca)
+            self._bias[sp.index] = echo - (t_ca - depth[~bad])
 
     def _drop_thin(self) -> None:
         """Drop surfaces left with too few beams to carry their own parameters (and the sphere-bar

@@ -130,6 +130,10 @@ class CalibrationResult:
     #: The scanner's spot scale from the spheres, ``{"spot_scale": s, "spot_scale_u": u}`` (multiplies
     #: the nominal spot exit diameter and divergence); ``None`` when not estimated (thin beam, no spheres).
     optics: dict[str, float] | None = None
+    #: With a finite spot (``CalibrationOptions.optics``): beams left out of the adjustment because
+    #: their spot was not wholly on their surface, by surface ("plane k", "sphere i": the artefact's
+    #: sphere i); ``None`` for the thin beam.
+    censored: dict[str, int] | None = None
 
     def __post_init__(self) -> None:
         cov = np.asarray(self.covariance, dtype=np.float64)
@@ -187,6 +191,7 @@ class CalibrationResult:
             "table": self.table(),
             **({"poses": [p.to_dict() for p in self.poses]} if self.poses else {}),
             **({"optics": dict(self.optics)} if self.optics is not None else {}),
+            **({"censored": dict(self.censored)} if self.censored is not None else {}),
         }
 
     def beam_optics(self, nominal: Any) -> Any:
@@ -228,6 +233,7 @@ class CalibrationResult:
                 software_version=str(d.get("software_version", "")),
                 poses=tuple(PoseFit.from_dict(p) for p in d.get("poses", ())),
                 optics=_optics(d.get("optics")),
+                censored=None if d.get("censored") is None else {str(k): int(v) for k, v in d["censored"].items()},
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise CalibrationError(f"malformed calibration: {exc}") from None
