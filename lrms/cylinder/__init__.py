@@ -54,6 +54,8 @@ fitted direction ``w`` and ``a`` is the fitted axis point.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
 from lrms.cylinder.bias import (
     _COS_FLOOR,
     GRAZING_SIGMA,
@@ -77,13 +79,6 @@ from lrms.cylinder.detect import (
     support_plane,
     table_height,
 )
-from lrms.cylinder.footprint import (
-    LMS1XX_DIVERGENCE,
-    LMS1XX_EXIT_DIAMETER,
-    BeamOptics,
-    expected_echo,
-    footprint_fit,
-)
 from lrms.cylinder.model import (
     SILHOUETTE_SIGMA,
     Cylinder,
@@ -102,6 +97,7 @@ from lrms.cylinder.pipeline import (
     BASE_CLEARANCE,
     CHI2_PLAUSIBLE,
     MULTISTART,
+    MULTISTART_SCREEN,
     NOMINAL_TOLERANCE,
     _better,
     _los_fit,
@@ -142,6 +138,7 @@ __all__ = [
     "LMS1XX_EXIT_DIAMETER",
     "MISS_GATE",
     "MULTISTART",
+    "MULTISTART_SCREEN",
     "NOMINAL_TOLERANCE",
     "SILHOUETTE_SIGMA",
     "TOP_BIN",
@@ -199,3 +196,24 @@ __all__ = [
     "support_plane",
     "table_height",
 ]
+
+if TYPE_CHECKING:
+    from lrms.cylinder.footprint import (
+        LMS1XX_DIVERGENCE,
+        LMS1XX_EXIT_DIAMETER,
+        BeamOptics,
+        expected_echo,
+        footprint_fit,
+    )
+
+#: Loaded on first use (PEP 562): the footprint model imports scipy.special, about 0.3 s of
+#: ``lrms fit``'s start, which the thin-beam fit does not need.
+_FOOTPRINT = ("LMS1XX_DIVERGENCE", "LMS1XX_EXIT_DIAMETER", "BeamOptics", "expected_echo", "footprint_fit")
+
+
+def __getattr__(name: str) -> Any:
+    if name in _FOOTPRINT:
+        from lrms.cylinder import footprint
+
+        return getattr(footprint, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
