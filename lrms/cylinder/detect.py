@@ -13,7 +13,7 @@ from lrms.cylinder.model import Cylinder, perpendicular_frame
 from lrms.cylinder.options import DetectOptions
 from lrms.cylinder.refine import CylinderFit, refine_cylinder
 from lrms.errors import FitError
-from lrms.ransac import PlaneModel, ransac
+from lrms.ransac import PlaneModel, angle_gate_cosine, ransac
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -132,14 +132,16 @@ class CylinderModel:
         dist = np.sqrt(np.maximum(d2, 0.0))
         res = np.abs(dist - r[:, None])
         if data.shape[1] >= 6:
-            near = res < threshold
             nrm = data[:, 3:6]
             # rad . n = (x - c).n - ((x - c).w) (w.n), by (B, 3) x (3, m) products; the arccos
-            # only where it can matter
-            rn = (np.einsum("mi,mi->m", x, nrm)[None, :] - c @ nrm.T - xw * (w @ nrm.T))[near]
-            cosang = np.minimum(np.abs(rn) / np.maximum(dist[near], 1e-12), 1.0)
-            res[near] += cls.normal_weight * np.arccos(cosang)
-            res[~near] = np.inf
+            # only where it can matter: the distance below the threshold and the angle below
+            # threshold / weight (|rad . n| above that angle's cosine times |rad|)
+            rn = np.abs(np.einsum("mi,mi->m", x, nrm)[None, :] - c @ nrm.T - xw * (w @ nrm.T))
+            rad = np.maximum(dist, 1e-12)
+            near = (res < threshold) & (rn > angle_gate_cosine(threshold, cls.normal_weight) * rad)
+            out = np.full(res.shape, np.inf)
+            out[near] = res[near] + cls.normal_weight * np.arccos(np.minimum(rn[near] / rad[near], 1.0))
+            return out
         return np.asarray(res, dtype=np.float64)
 
     @classmethod
