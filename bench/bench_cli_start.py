@@ -5,9 +5,11 @@ each command as a fresh process (``sys.executable -m service.cli.main ...``, the
 do), interleaved ``--reps`` times, and prints the least wall time and the least CPU time (user +
 system, from the process's own rusage: on a shared machine the CPU time moves less than the wall
 time) with their ratio to ``python -c pass`` measured in the same run. "fit imports" is the
-import work ``lrms fit FILE`` does for a cylinder (the modules its ``run`` imports, and
-:mod:`scipy.ndimage`, which the fit imports on first use); "fit 2k-point cloud" is the whole
-command on a 2,000-point cylinder (``--no-line-of-sight``). "measure: until the sweep starts"
+import work ``lrms fit FILE`` does for a cylinder (the modules its ``run`` imports; since issue
+15's second round the default fit imports nothing of scipy: normals and nearest neighbours on
+grids, the plane's piece test in numpy, the footprint model and its scipy.special on first use);
+"fit 2k-point cloud" is the whole command on a 2,000-point cylinder (``--no-line-of-sight``).
+"measure: until the sweep starts"
 runs ``lrms measure`` on the default simulated rig (at 45 deg/s, so the run is short) and
 takes the time from starting the process to the raw log's measurement record, which the rig
 process writes just before it commands the approach move (``service.rig.Rig._measure``); its
@@ -37,7 +39,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 FIT_IMPORTS = (
     "import service.cli.main, service.cli.fit, service.pointio, service.fitting, lrms.kinematics, "
-    "lrms.budget, lrms.covariance, lrms.cylinder, lrms.uncertainty, scipy.ndimage"
+    "lrms.budget, lrms.covariance, lrms.cylinder, lrms.uncertainty"
 )
 MEASURE_ARGS = ["measure", "--target", "cylinder", "--quiet", "--speed", "45"]
 

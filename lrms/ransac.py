@@ -162,6 +162,14 @@ class BatchModel(Protocol):
     def from_params(cls, row: FloatArray) -> RansacModel: ...
 
 
+def angle_gate_cosine(threshold: float, weight: float) -> float:
+    """The cosine below which a row's angle term alone (``weight`` m/rad) reaches ``threshold``:
+    such a row is no inlier whatever its distance (less 1e-9, so rounding never drops one)."""
+    if weight <= 0:
+        return -np.inf
+    return float(np.cos(min(threshold / weight, np.pi))) - 1e-9
+
+
 class PlaneModel:
     """Plane ``n . x = d`` (unit ``n``) on rows ``(x, y, z)`` or ``(x, y, z, nx, ny, nz)``.
 
@@ -235,11 +243,13 @@ class PlaneModel:
         d = np.asarray(data, dtype=np.float64)
         res = np.abs(params[:, :3] @ d[:, :3].T - params[:, 3:4])
         if cls.normal_weight > 0 and d.shape[1] >= 6:
-            near = res < threshold
-            # all cosines by one (B, 3) x (3, m) product; the arccos only where it can matter
-            cosang = np.minimum(np.abs(params[:, :3] @ d[:, 3:6].T)[near], 1.0)
-            res[near] += cls.normal_weight * np.arccos(cosang)
-            res[~near] = np.inf
+            # all cosines by one (B, 3) x (3, m) product; the arccos only where it can matter:
+            # the distance below the threshold and the angle below threshold / weight
+            cos = np.abs(params[:, :3] @ d[:, 3:6].T)
+            near = (res < threshold) & (cos > angle_gate_cosine(threshold, cls.normal_weight))
+            out = np.full(res.shape, np.inf)
+            out[near] = res[near] + cls.normal_weight * np.arccos(np.minimum(cos[near], 1.0))
+            return out
         return np.asarray(res, dtype=np.float64)
 
     @classmethod

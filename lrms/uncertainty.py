@@ -31,6 +31,7 @@ c. :func:`monte_carlo_interval`: GUM Supplement 1. The scan is re-simulated from
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -42,6 +43,7 @@ from lrms.budget import ReplicaSystematics
 from lrms.covariance import NoiseModel
 from lrms.cylinder import (
     MULTISTART,
+    MULTISTART_SCREEN,
     SILHOUETTE_SIGMA,
     Cylinder,
     CylinderFit,
@@ -361,9 +363,7 @@ def gum_interval(fit: CylinderFit, coverage_factor: float = 2.0) -> Interval:
     """GUM: ``d +- k u(d)`` with ``u(d) = 2 sqrt(var r)`` from the fit's covariance."""
     u = fit.std_diameter
     d = fit.diameter
-    from scipy.special import ndtr  # the normal CDF (scipy.stats costs ~0.4 s of start-up)
-
-    cov = float(2 * ndtr(coverage_factor) - 1)
+    cov = math.erf(coverage_factor / math.sqrt(2.0))  # 2 Phi(k) - 1, without scipy.special
     return Interval(diameter=d, std=u, low=d - coverage_factor * u, high=d + coverage_factor * u, coverage=cov)
 
 
@@ -468,22 +468,33 @@ def coverage_order_statistics(samples: ArrayLike, coverage: float) -> tuple[floa
     return float(x[r - 1]), float(x[m - r])
 
 
+def _subset_problem(fn: BatchResiduals, rows: NDArray[np.intp]) -> BatchResiduals:
+    """``fn`` on the problems ``rows`` only (their local indices mapped back)."""
+
+    def sub(th: FloatArray, i: NDArray[np.intp]) -> FloatArray:
+        return fn(th, rows[i])
+
+    return sub
+
+
 def _replica_fit(
     fun: BatchResiduals, jfun: BatchResiduals, rep: int, sigma_l: float, iterations: int, multistart: bool
 ) -> FloatArray:
     """Refit ``rep`` replicas: one batched solve from the truth (``theta = 0``), then, with
     ``multistart``, the fit's multi-start (:func:`lrms.cylinder._multistart`): restarts at radii
-    :data:`lrms.cylinder.MULTISTART` sigma_l around that solution, the lowest cost wins."""
+    :data:`lrms.cylinder.MULTISTART` sigma_l around that solution, each screened by
+    :data:`lrms.cylinder.MULTISTART_SCREEN` steps (continued only where they beat the best cost so
+    far), the lowest cost wins."""
     idx = np.arange(rep)
     theta = batched_levenberg_marquardt(fun, jfun, np.zeros((rep, 5)), max_iter=iterations)
     if not multistart:
         return theta
 
-    def cost(th: FloatArray) -> FloatArray:
-        c = np.full(rep, np.inf)
+    def cost(th: FloatArray, rows: NDArray[np.intp] = idx) -> FloatArray:
+        c = np.full(rows.size, np.inf)
         ok = np.all(np.isfinite(th), axis=1)
         if np.any(ok):
-            r = fun(th[ok], idx[ok])
+            r = fun(th[ok], rows[ok])
             c[ok] = np.sum(r * r, axis=-1)
         return c
 
@@ -491,8 +502,14 @@ def _replica_fit(
     for dr in MULTISTART:
         start = np.where(np.isfinite(theta), theta, 0.0)
         start[:, 4] += dr * sigma_l
-        trial = batched_levenberg_marquardt(fun, jfun, start, max_iter=iterations)
+        # screened as in the fit: a few steps, continued only where they beat the best so far
+        trial = batched_levenberg_marquardt(fun, jfun, start, max_iter=MULTISTART_SCREEN)
         c = cost(trial)
+        go = np.flatnonzero(c < best_cost)
+        if go.size:
+            sub = _subset_problem(fun, go)
+            trial[go] = batched_levenberg_marquardt(sub, _subset_problem(jfun, go), trial[go], max_iter=iterations)
+            c[go] = cost(trial[go], go)
         better = c < best_cost
         best = np.where(better[:, None], trial, best)
         best_cost = np.where(better, c, best_cost)

@@ -4,21 +4,23 @@ Modules by job: :mod:`~lrms.cylinder.model` (the cylinder, beams, ray intersecti
 :mod:`~lrms.cylinder.refine` (residuals, Jacobians, :func:`refine_cylinder`),
 :mod:`~lrms.cylinder.bias` (grazing weights, second-order bias correction),
 :mod:`~lrms.cylinder.detect` (RANSAC model, support plane, table height),
+:mod:`~lrms.cylinder.grid` (the detection's normals and nearest neighbours on grids),
 :mod:`~lrms.cylinder.options` (:class:`DetectOptions`) and :mod:`~lrms.cylinder.pipeline`
 (:func:`fit_cylinder`). Every public name is re-exported here.
 
 Pipeline (:func:`fit_cylinder`; the details and measured numbers are in ``docs/cylinder.md``):
 
-1. **Normals** on a random subsample by PCA of k-nearest-neighbour patches (scipy ``cKDTree``),
-   as PCL's ``SACMODEL_CYLINDER`` expects them. The subsample keeps the neighbourhoods wider
-   than the range noise (about 12 mm on the LMS100), so the normals mean something.
+1. **Normals** on a random subsample by PCA of grid-cell neighbourhoods of about k points
+   (:mod:`~lrms.cylinder.grid`, numpy only), as PCL's ``SACMODEL_CYLINDER`` expects them. The
+   subsample keeps the neighbourhoods wider than the range noise (about 12 mm on the LMS100), so
+   the normals mean something.
 2. **Cylinder RANSAC** on minimal samples of 2 points + normals (:class:`CylinderModel`): the
    axis direction is ``n1 x n2``, the axis passes through the closest points of the two normal
    lines, the radius is the distance of the first point from that axis. Residual: distance to
    the surface plus a penalty for the angle between the point's normal and the radial direction.
 3. **Support plane** (:func:`support_plane`): the populated slab perpendicular to the axis (the
    table); its points are set aside and the axis meets it at the base point.
-4. **Refinement** with ``scipy.optimize.least_squares`` (analytic Jacobians):
+4. **Refinement** with our own Levenberg-Marquardt (:mod:`~lrms.cylinder.lm`, analytic Jacobians):
 
    * *line of sight* (default): every point keeps its beam (origin and direction recovered by
      inverting Eq. 1) and the residual is the measured range minus the range at which that beam
@@ -28,7 +30,8 @@ Pipeline (:func:`fit_cylinder`; the details and measured numbers are in ``docs/c
      :data:`SILHOUETTE_SIGMA`, so the objective stays continuous at the silhouette. Inliers are
      re-selected on the candidates (range residual below :data:`INLIER_GATE` sigma, miss below
      :data:`MISS_GATE` lateral sigmas, with hysteresis), then the fit is restarted from nearby
-     radii (:data:`MULTISTART`) because the silhouette makes the likelihood multi-modal.
+     radii (:data:`MULTISTART`, each start screened by :data:`MULTISTART_SCREEN` steps) because
+     the silhouette makes the likelihood multi-modal.
    * *orthogonal distance* (``line_of_sight=False``): ``(|distance to axis| - r) / sigma``, the
      right fit for isotropic noise. On a one-sided view with range noise it is biased low.
 
@@ -54,6 +57,8 @@ fitted direction ``w`` and ``a`` is the fitted axis point.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
 from lrms.cylinder.bias import (
     _COS_FLOOR,
     GRAZING_SIGMA,
@@ -77,13 +82,7 @@ from lrms.cylinder.detect import (
     support_plane,
     table_height,
 )
-from lrms.cylinder.footprint import (
-    LMS1XX_DIVERGENCE,
-    LMS1XX_EXIT_DIAMETER,
-    BeamOptics,
-    expected_echo,
-    footprint_fit,
-)
+from lrms.cylinder.grid import grid_normals, nearest_in_grid
 from lrms.cylinder.model import (
     SILHOUETTE_SIGMA,
     Cylinder,
@@ -102,6 +101,7 @@ from lrms.cylinder.pipeline import (
     BASE_CLEARANCE,
     CHI2_PLAUSIBLE,
     MULTISTART,
+    MULTISTART_SCREEN,
     NOMINAL_TOLERANCE,
     _better,
     _los_fit,
@@ -142,6 +142,7 @@ __all__ = [
     "LMS1XX_EXIT_DIAMETER",
     "MISS_GATE",
     "MULTISTART",
+    "MULTISTART_SCREEN",
     "NOMINAL_TOLERANCE",
     "SILHOUETTE_SIGMA",
     "TOP_BIN",
@@ -186,9 +187,11 @@ __all__ = [
     "footprint_fit",
     "grazing_sigmas",
     "grazing_weighted_fit",
+    "grid_normals",
     "incidence_cosines",
     "los_jacobian",
     "los_residuals",
+    "nearest_in_grid",
     "nominal_diameter_range",
     "orthogonal_jacobian",
     "orthogonal_residuals",
@@ -199,3 +202,24 @@ __all__ = [
     "support_plane",
     "table_height",
 ]
+
+if TYPE_CHECKING:
+    from lrms.cylinder.footprint import (
+        LMS1XX_DIVERGENCE,
+        LMS1XX_EXIT_DIAMETER,
+        BeamOptics,
+        expected_echo,
+        footprint_fit,
+    )
+
+#: Loaded on first use (PEP 562): the footprint model imports scipy.special, about 0.3 s of
+#: ``lrms fit``'s start, which the thin-beam fit does not need.
+_FOOTPRINT = ("LMS1XX_DIVERGENCE", "LMS1XX_EXIT_DIAMETER", "BeamOptics", "expected_echo", "footprint_fit")
+
+
+def __getattr__(name: str) -> Any:
+    if name in _FOOTPRINT:
+        from lrms.cylinder import footprint
+
+        return getattr(footprint, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -8,7 +8,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial import cKDTree
 
 from lrms import kinematics
 from lrms.covariance import NoiseModel
@@ -218,6 +217,8 @@ def estimate_normals(points: ArrayLike, k: int = 24, chunk: int = 50_000) -> Flo
     n = pts.shape[0]
     if n < 3:
         raise FitError(f"need at least 3 points for normals, got {n}")
+    from scipy.spatial import cKDTree  # the elbow's detection; the cylinder's uses lrms.cylinder.grid
+
     kk = int(min(max(k, 3), n))
     tree = cKDTree(pts)
     cols = np.ascontiguousarray(pts.T)

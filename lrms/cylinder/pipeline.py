@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from contextlib import suppress
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -13,11 +14,14 @@ from lrms import kinematics
 from lrms.covariance import NoiseModel
 from lrms.cylinder.bias import GRAZING_SIGMA, bias_corrected, grazing_weighted_fit
 from lrms.cylinder.detect import _top_height, background_planes, candidate_pool, detect_cylinder, table_height
-from lrms.cylinder.footprint import BeamOptics, footprint_fit
+from lrms.cylinder.lm import LosProblem, levenberg_marquardt
 from lrms.cylinder.model import Cylinder, Rays, rays_from_points
 from lrms.cylinder.options import DetectOptions
 from lrms.cylinder.refine import CylinderFit, refine_cylinder
 from lrms.errors import FitError
+
+if TYPE_CHECKING:
+    from lrms.cylinder.footprint import BeamOptics
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -72,6 +76,8 @@ MULTISTART_WORK = 2000
 #: Inliers above which the winner's final solve on all of them is a few LM steps only: it starts
 #: next to its optimum, and :func:`~lrms.cylinder.bias.grazing_weighted_fit` refits from it.
 MULTISTART_FULL_STEPS = (10_000, 4)
+#: LM steps after which an extra start must have beaten the best cost so far to be continued.
+MULTISTART_SCREEN = 2
 
 
 def _multistart(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: DetectOptions) -> CylinderFit:
@@ -82,23 +88,38 @@ def _multistart(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: DetectOption
     several local minima a few tenths of sigma_l apart; one LM run from the orthogonal fit's
     (biased) start does not always reach the best. The starts are compared on the same inliers
     (a random subset of at most :data:`MULTISTART_WORK` of them), the winner is refined on all.
+    Each extra start is screened (:func:`_screened_start`): it is solved to its end only if a
+    few steps take it below the best cost so far.
     """
     idx = fit.inliers
     work = MULTISTART_WORK
     sel = idx if idx.size <= work else np.sort(np.random.default_rng(2).choice(idx, work, replace=False))
-    sub_pts, sub_rays = pts[sel], rays.subset(sel)
+    prob = LosProblem(rays.subset(sel))
     sig = float(np.median(rays.sigma_l))
     best_cyl, best_cost = fit.cylinder, np.inf
-    for dr in (0.0, *MULTISTART):
-        start = Cylinder(fit.cylinder.point, fit.cylinder.direction, fit.cylinder.radius + dr * sig)
-        try:
-            trial = refine_cylinder(sub_pts, start, rays=sub_rays, gate=np.inf, max_rounds=1)
-        except FitError:
-            continue
-        if trial.chi2_dof < best_cost:
-            best_cyl, best_cost = trial.cylinder, trial.chi2_dof
+    with suppress(FitError):
+        best_cyl, lin = levenberg_marquardt(prob, fit.cylinder, max_iter=200)
+        best_cost = lin.cost
+    centre = best_cyl
+    for dr in MULTISTART:
+        start = Cylinder(centre.point, centre.direction, centre.radius + dr * sig)
+        with suppress(FitError):
+            cyl, cost = _screened_start(prob, start, best_cost)
+            if cost < best_cost:
+                best_cyl, best_cost = cyl, cost
     big, steps = MULTISTART_FULL_STEPS
     return refine_cylinder(pts, best_cyl, rays=rays, max_rounds=1, max_nfev=steps if idx.size > big else 200)
+
+
+def _screened_start(prob: LosProblem, start: Cylinder, best_cost: float) -> tuple[Cylinder, float]:
+    """An extra start of the multi-start: :data:`MULTISTART_SCREEN` LM steps, continued to the
+    end only when they already lead below ``best_cost`` (a start that falls back into the
+    centre's minimum does not, and took 12-18 steps to get there). The replicas of
+    :func:`lrms.uncertainty.monte_carlo_interval` apply the same rule."""
+    cyl, lin = levenberg_marquardt(prob, start, max_iter=MULTISTART_SCREEN)
+    if lin.cost < best_cost:
+        cyl, lin = levenberg_marquardt(prob, cyl, max_iter=200)
+    return cyl, float(lin.cost)
 
 
 def _los_fit(pts: FloatArray, rays: Rays, start: Cylinder, opt: DetectOptions, multistart: bool = True) -> CylinderFit:
@@ -353,6 +374,8 @@ def fit_cylinder(
             best = _reindex(_refine_from(pts[use], start, True, rr.subset(use), opt), use, pts.shape[0])
     footprint_won = False
     if rr is not None and optics is not None:
+        from lrms.cylinder.footprint import footprint_fit  # scipy.special: only the footprint model needs it
+
         fp = footprint_fit(pts, rr, best, optics)
         footprint_won = fp.extra.get("edge_mode_first", -1.0) >= 0
         best = fp if footprint_won else replace(best, extra=fp.extra)  # the thin beam explains the data best

@@ -162,7 +162,7 @@ def fit_cylinder_file(args: argparse.Namespace, points: Any, calibration: Any = 
     from lrms import kinematics
     from lrms.budget import BeamGeometry, SensorErrors
     from lrms.covariance import NoiseModel
-    from lrms.cylinder import BeamOptics, nominal_diameter_range, rays_from_points
+    from lrms.cylinder import nominal_diameter_range, rays_from_points
     from lrms.errors import LrmsError
     from service.fitting import cylinder_result
 
@@ -198,6 +198,8 @@ def fit_cylinder_file(args: argparse.Namespace, points: Any, calibration: Any = 
         diameter_range = nominal_diameter_range(args.nominal_diameter, args.diameter_tolerance)
     optics = None
     if args.optics == "lms1xx":
+        from lrms.cylinder import BeamOptics  # the footprint model (scipy.special): on first use
+
         optics = BeamOptics(exit_diameter_m=args.spot_exit_mm / 1e3, divergence_rad=args.divergence_mrad / 1e3)
         if calibration is not None:  # the calibration's spot scale from its reference spheres, if any
             optics = calibration[0].beam_optics(optics)
