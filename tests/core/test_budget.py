@@ -23,7 +23,7 @@ from lrms.budget import (
     scan_groups,
 )
 from lrms.covariance import NoiseModel
-from lrms.cylinder import BeamOptics, CylinderFit, Rays, _Frame, fit_cylinder
+from lrms.cylinder import BeamOptics, Cylinder, CylinderFit, Rays, _Frame, fit_cylinder
 from lrms.errors import LrmsError
 from lrms.uncertainty import _replica_fit, _replica_problem, ideal_points, monte_carlo_interval
 
@@ -131,7 +131,14 @@ def test_angle_zero_sensitivities_match_refits_and_a_motor_zero_changes_nothing(
 
     def refit_angles(da: float, db: float) -> float:
         o, d = kinematics.beam_rays(beams.alpha + da, beams.beta + db, seed.P)
-        return _refit(fit, Rays(o, d, l, rays.sigma_l, rays.sigma_perp))
+        c, s = np.cos(db), np.sin(db)
+        turn = np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])  # beta -> beta + db about the shaft (y)
+        start = fit.cylinder
+        # the start turns with the cloud: the multi-start's local minima (a few hundredths of a mm
+        # apart) are then the same ones, and the diameter must agree to rounding
+        start = Cylinder(turn @ start.point, turn @ start.direction, start.radius)
+        rr = Rays(o, d, l, rays.sigma_l, rays.sigma_perp)
+        return fit_cylinder(rr.points(), rays=rr, noise=NM, initial=start).diameter
 
     h = float(np.deg2rad(0.05))
     # the fit is told alpha + h where the echo came from alpha: an error of -h
