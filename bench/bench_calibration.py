@@ -196,7 +196,8 @@ def lms_part(
     """Seed 003's part measured as the service measures it, with the LMS1xx footprint sensor: a
     step-and-scan sweep (-35..75 deg, 0.4 deg steps, beams 60..120 deg) by ``true_rig`` with
     SICK's noise and the beam footprint, the readings in :data:`PART_ROI` mapped with ``mapping``,
-    fitted with the footprint model (``BeamOptics``, nominal diameter +-10 %) by
+    fitted with the footprint model (``BeamOptics``, with the calibration's spot scale when it has one:
+    ``CalibrationResult.beam_optics``; nominal diameter +-10 %) by
     :func:`service.fitting.cylinder_result`, whose budget carries the calibration's row (and
     without a calibration the uncalibrated LMS1xx rows). Returns the diameter error (m), U (m, k = 2)
     and the calibration row's u (m; 0 without one)."""
@@ -242,7 +243,7 @@ def lms_part(
             noise=nm,
             p=mapping.p,
             rng=np.random.default_rng(seed),
-            optics=BeamOptics(),
+            optics=BeamOptics() if calibration is None else calibration.beam_optics(BeamOptics()),
             diameter_range=nominal_diameter_range(SEED003_DIAMETER),
             beams=BeamGeometry(alpha, beta, mapping.p, 0.0, scan),
             calibration=row,  # type: ignore[arg-type]
