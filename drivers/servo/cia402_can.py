@@ -21,7 +21,8 @@ other interface the host part (or the path) is the channel. Options:
                               process dies the drive faults (0x8130) and stops; 0 = off
 ``sdo_timeout``    1.0        seconds to wait for each SDO response
 ``drive_stamp``    1          map the drive's time stamp 0x1013 into the samples when it has one
-                              (0 = never: samples carry only the SYNC time)
+                              (0 = never: samples carry only the SYNC time); with ``setup=0``
+                              the layout the other master mapped is read back and decoded
 ``bitrate``        (none)     passed to python-can for interfaces that need it
 ``counts_per_rev`` (config)   encoder counts per motor revolution, overrides the DriveConfig
 ``gear_ratio``     (config)   motor revolutions per output revolution, overrides the DriveConfig
@@ -294,8 +295,10 @@ class Cia402CanMotor(Cia402Motor):
             self._nmt(0x01)  # Operational
         else:
             self._heartbeat_ms = self._read_object(cia402.PRODUCER_HEARTBEAT_TIME)
-            if self.options.drive_stamp and self._read_tpdo_mapping(0) == cia402.SAMPLE_TPDOS_STAMPED[0]:
-                self.sample_tpdos = cia402.SAMPLE_TPDOS_STAMPED  # the other master mapped the stamp
+            # decode what the other master mapped, whatever drive_stamp says (it only chooses the
+            # layout this driver maps itself, with setup=1)
+            if self._read_tpdo_mapping(0) == cia402.SAMPLE_TPDOS_STAMPED[0]:
+                self.sample_tpdos = cia402.SAMPLE_TPDOS_STAMPED
         self._controlword = self._read_object(cia402.CONTROLWORD)
         if self._heartbeat_ms:
             self._last_heartbeat = self.clock()  # the watchdog starts now

@@ -26,6 +26,7 @@ from drivers.servo.interface import (
 from drivers.url import open_device
 from sim.drive.can_node import SimCanNode
 from sim.drive.model import SimDrive
+from tests.servo.util import wait_for
 
 FAST = DriveConfig(
     velocity_rad_s=math.radians(60.0),
@@ -50,16 +51,6 @@ def drive_of(m: Cia402CanMotor) -> SimDrive:
     drive = m.sim_node.drive
     assert isinstance(drive, SimDrive)
     return drive
-
-
-def wait_for(predicate: object, timeout: float = 10.0) -> None:
-    """Wait for a condition driven by other threads (a deadline against hangs, not a timing check)."""
-    assert callable(predicate)
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        time.sleep(0.005)
 
 
 def test_enable_move_and_samples(motor: Cia402CanMotor) -> None:

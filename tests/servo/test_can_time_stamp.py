@@ -21,18 +21,9 @@ from drivers.url import open_device
 from sim.drive.can_node import SimCanNode
 from sim.drive.model import ObjectAccessError, SimDrive
 from sim.drive.socketcand import SimulatedCanDrive
+from tests.servo.util import wait_for
 
 CONFIG = DriveConfig(velocity_rad_s=math.radians(60.0), acceleration_rad_s2=math.radians(600.0))
-
-
-def wait_for(predicate: object, timeout: float = 10.0) -> None:
-    """A deadline against hangs, not a timing check."""
-    assert callable(predicate)
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        time.sleep(0.005)
 
 
 def jogging_samples(m: Cia402CanMotor, n: int = 60) -> list[MotorSample]:
@@ -94,6 +85,28 @@ def test_the_stamp_comes_across_socketcand_too() -> None:
             # a second, passive master reads which layout the first one mapped from the drive
             with open_device("motor", sim.url + "&setup=0&sync_hz=0&master_id=0", config=CONFIG) as passive:
                 assert isinstance(passive, Cia402CanMotor) and passive.drive_stamped
+        finally:
+            m.close()
+
+
+def test_a_passive_master_with_drive_stamp_0_decodes_the_stamped_layout_it_finds() -> None:
+    """drive_stamp=0 only chooses what a master maps itself: joining a drive the other master
+    mapped stamped, the passive one decodes that layout (else statusword and position are garbage)."""
+    with SimulatedCanDrive(node=16) as sim:
+        m = open_device("motor", sim.url + "&sync_hz=100", config=CONFIG)
+        try:
+            assert isinstance(m, Cia402CanMotor) and m.drive_stamped
+            m.enable()
+            m.move_to(math.radians(15.0), wait=True)
+            url = sim.url + "&setup=0&sync_hz=0&master_id=0&drive_stamp=0"
+            with open_device("motor", url, config=CONFIG) as passive:
+                assert isinstance(passive, Cia402CanMotor) and passive.drive_stamped
+                t0 = passive.clock()
+                wait_for(lambda: len(passive.samples_since(t0)) >= 5)
+                for s in passive.samples_since(t0):
+                    assert math.degrees(s.position_rad) == pytest.approx(15.0, abs=0.01)
+                    assert cia402.decode_state(s.statusword) is cia402.State.OPERATION_ENABLED
+                    assert s.drive_stamp_us is not None and s.drive_stamp_us >= 0
         finally:
             m.close()
 
