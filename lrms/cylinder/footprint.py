@@ -555,7 +555,9 @@ def footprint_fit(
     cov_full = jtj_inv * max(1.0, chi2_dof)
     # the profile of the cost in the radius: the first hit's radius trades off against tau along a
     # flat, rough ridge that the Gauss-Newton curvature J^T J does not see (its u was 4-5x below
-    # the spread of noise-only replicas); the variance is taken as the larger of the two
+    # the spread of noise-only replicas); the variance is taken as the larger of the two, the whole
+    # covariance scaled by their ratio (the axis point follows the radius along that ridge; see
+    # docs/cylinder.md section 7)
     var_jtj = float(cov_full[4, 4])
     var_prof = _profile_variance(best, frame, optics) * max(1.0, chi2_dof)
     prof_scale = max(1.0, var_prof / max(var_jtj, 1e-30))
