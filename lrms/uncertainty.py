@@ -43,6 +43,7 @@ from lrms.budget import ReplicaSystematics
 from lrms.covariance import NoiseModel
 from lrms.cylinder import (
     MULTISTART,
+    MULTISTART_SCREEN,
     SILHOUETTE_SIGMA,
     Cylinder,
     CylinderFit,
@@ -467,13 +468,23 @@ def coverage_order_statistics(samples: ArrayLike, coverage: float) -> tuple[floa
     return float(x[r - 1]), float(x[m - r])
 
 
+def _subset_problem(fn: BatchResiduals, rows: NDArray[np.intp]) -> BatchResiduals:
+    """``fn`` on the problems ``rows`` only (their local indices mapped back)."""
+
+    def sub(th: FloatArray, i: NDArray[np.intp]) -> FloatArray:
+        return fn(th, rows[i])
+
+    return sub
+
+
 def _replica_fit(
     fun: BatchResiduals, jfun: BatchResiduals, rep: int, sigma_l: float, iterations: int, multistart: bool
 ) -> FloatArray:
     """Refit ``rep`` replicas: one batched solve from the truth (``theta = 0``), then, with
     ``multistart``, the fit's multi-start (:func:`lrms.cylinder._multistart`): restarts at radii
-    :data:`lrms.cylinder.MULTISTART` sigma_l around that solution, each solved with the same
-    ``iterations`` as the solve from the truth, the lowest cost wins."""
+    :data:`lrms.cylinder.MULTISTART` sigma_l around that solution, each screened by
+    :data:`lrms.cylinder.MULTISTART_SCREEN` steps (continued only where they beat the best cost so
+    far), the lowest cost wins."""
     idx = np.arange(rep)
     theta = batched_levenberg_marquardt(fun, jfun, np.zeros((rep, 5)), max_iter=iterations)
     if not multistart:
@@ -491,8 +502,14 @@ def _replica_fit(
     for dr in MULTISTART:
         start = np.where(np.isfinite(theta), theta, 0.0)
         start[:, 4] += dr * sigma_l
-        trial = batched_levenberg_marquardt(fun, jfun, start, max_iter=iterations)
+        # screened as in the fit: a few steps, continued only where they beat the best so far
+        trial = batched_levenberg_marquardt(fun, jfun, start, max_iter=MULTISTART_SCREEN)
         c = cost(trial)
+        go = np.flatnonzero(c < best_cost)
+        if go.size:
+            sub = _subset_problem(fun, go)
+            trial[go] = batched_levenberg_marquardt(sub, _subset_problem(jfun, go), trial[go], max_iter=iterations)
+            c[go] = cost(trial[go], go)
         better = c < best_cost
         best = np.where(better[:, None], trial, best)
         best_cost = np.where(better, c, best_cost)

@@ -30,7 +30,7 @@ Pipeline (:func:`fit_cylinder`; the details and measured numbers are in ``docs/c
      :data:`SILHOUETTE_SIGMA`, so the objective stays continuous at the silhouette. Inliers are
      re-selected on the candidates (range residual below :data:`INLIER_GATE` sigma, miss below
      :data:`MISS_GATE` lateral sigmas, with hysteresis), then the fit is restarted from nearby
-     radii (:data:`MULTISTART`, each start solved to its end) because
+     radii (:data:`MULTISTART`, each start screened by :data:`MULTISTART_SCREEN` steps) because
      the silhouette makes the likelihood multi-modal.
    * *orthogonal distance* (``line_of_sight=False``): ``(|distance to axis| - r) / sigma``, the
      right fit for isotropic noise. On a one-sided view with range noise it is biased low.
@@ -101,6 +101,7 @@ from lrms.cylinder.pipeline import (
     BASE_CLEARANCE,
     CHI2_PLAUSIBLE,
     MULTISTART,
+    MULTISTART_SCREEN,
     NOMINAL_TOLERANCE,
     _better,
     _los_fit,
@@ -141,6 +142,7 @@ __all__ = [
     "LMS1XX_EXIT_DIAMETER",
     "MISS_GATE",
     "MULTISTART",
+    "MULTISTART_SCREEN",
     "NOMINAL_TOLERANCE",
     "SILHOUETTE_SIGMA",
     "TOP_BIN",
