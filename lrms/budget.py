@@ -450,17 +450,16 @@ def sensitivities(fit: CylinderFit, rays: Rays, beams: BeamGeometry) -> Sensitiv
     )
 
 
+def _not_evaluated(name: str, why: str) -> BudgetRow:
+    """A type-B row of zero uncertainty marked "not evaluated", ``why`` saying what is missing."""
+    return BudgetRow(name, "B", 0.0, "m", 1.0, 0.0, "not evaluated", why)
+
+
 def _edge_row(fit: CylinderFit) -> BudgetRow:
     u = fit.extra.get("edge_model_u_m")
     if u is None:
-        return BudgetRow(
+        return _not_evaluated(
             "footprint / edge model",
-            "B",
-            0.0,
-            "m",
-            1.0,
-            0.0,
-            "not evaluated",
             "this fit has no edge model (thin-beam model): under a real LMS1xx's footprint it is biased by "
             "tens of mm, which no row here covers (docs/sensor-model.md)",
         )
@@ -478,16 +477,7 @@ def _edge_row(fit: CylinderFit) -> BudgetRow:
 def _family_row(fit: CylinderFit) -> BudgetRow:
     u = fit.extra.get("edge_family_u_m")
     if u is None:
-        return BudgetRow(
-            "edge family (model choice)",
-            "B",
-            0.0,
-            "m",
-            1.0,
-            0.0,
-            "not evaluated",
-            "no footprint fit: no choice among edge families was made",
-        )
+        return _not_evaluated("edge family (model choice)", "no footprint fit: no choice among edge families was made")
     w = ", ".join(
         f"{k.removeprefix('akaike_weight_')} {v:.2g}"
         for k, v in sorted(fit.extra.items())

@@ -55,6 +55,7 @@ from lrms.cylinder.refine import CylinderFit, _Frame, los_residuals
 from lrms.errors import FitError
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
 EdgeMode = Literal["weighted", "first"]
 
 #: LMS1xx light spot at the front screen (m) and divergence (full angle, rad): SICK 8012471, 3.6.2.
@@ -225,7 +226,6 @@ def first_hit_range(
     sd: float,
     tau: float,
     c: FloatArray,
-    start: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """The first-hit range of each beam in closed form: the range ``T`` at which the share of the
     spot whose sub-rays meet the cylinder at a range ``<= T`` reaches ``min(tau, 0.999 c)``.
@@ -239,8 +239,9 @@ def first_hit_range(
     safeguarded Newton iteration. Returns ``T`` and ``dT / dF`` at ``T`` (capped at 1 m per unit
     share): where the threshold falls near the limb, ``F`` is flat and a small error of the share
     moves ``T`` by millimetres. (The sub-rays' tilt across the beam changes their path length
-    by ``t tilt^2 / 2``, about 0.02 mm at one sigma: left out.) ``start``: a previous solution
-    (the solver's last step) to start Newton from, where it lies inside the bracket.
+    by ``t tilt^2 / 2``, about 0.02 mm at one sigma: left out.) Newton always starts from the
+    front's quantile below, never from a previous solution (a warm start moved 2 beams of a test
+    cloud to another root, 7-9 mm away).
     """
     target = np.minimum(tau, 0.999 * c)
     p = np.sqrt(np.maximum(1.0 - cos_axis * cos_axis, 1e-12))
@@ -250,8 +251,6 @@ def first_hit_range(
     hi = t_ca + 6.0 * ys + 1e-9
     # start: the front's one-sided quantile, well inside the bracket
     big_t = np.clip(t_ca - depth + 0.5 * (1.0 - np.minimum(target / np.maximum(c, 1e-12), 1.0)) * depth, lo, hi)
-    if start is not None and start.shape == big_t.shape:
-        big_t = np.where((start > lo) & (start < hi), start, big_t)
     # safeguarded Newton on the beams not yet converged only (most take 3-5 steps, a few bisect)
     act = np.arange(big_t.size)
     for _ in range(60):
@@ -327,8 +326,9 @@ def _first_rows(
 
 @dataclass
 class _Warm:
-    """One solve's memory of the first-hit ranges: the last parameters and their solution (the
-    Jacobian is asked at the point just evaluated) and a warm start for the next Newton solve."""
+    """One solve's memory of the first-hit ranges: the last parameters and their solution, reused
+    when the same parameters come again (the Jacobian is asked at the point just evaluated). Other
+    parameters get a cold Newton solve: no warm start (see :func:`first_hit_range`)."""
 
     theta: FloatArray | None = None
     big_t: FloatArray | None = None
@@ -493,7 +493,7 @@ def footprint_fit(
     work = rays.subset(use)
     frame = _Frame.at(fit.cylinder.with_point_near(pts[use].mean(axis=0)))
     thin_res = los_residuals(np.zeros(5), frame, work.origins, work.dirs, work.ranges, work.sigma_l, work.sigma_perp)
-    aic_thin = float(np.sum(np.minimum(thin_res * thin_res, gate * gate))) + 2 * 5
+    aic_thin = _thin_criterion(thin_res, gate)
     # the families are first fitted on a subsample of the work beams; only those the subsample
     # leaves plausible (AIC within MODE_DECISIVE of the best, the thin beam included) are refined
     # on all of them, from the subsample's solution
@@ -505,7 +505,7 @@ def footprint_fit(
         sub_solved = _fit_families(frame, work.subset(pick), optics, modes, starts, gate)
         if sub_solved:
             aic_sub = _aics(sub_solved, frame, work.subset(pick), optics, gate)
-            thin_sub = float(np.sum(np.minimum(thin_res[pick] ** 2, gate * gate))) + 2 * 5
+            thin_sub = _thin_criterion(thin_res, gate, pick)
             floor = min(min(aic_sub.values()), thin_sub)
             plausible = [s.mode for s in sub_solved if aic_sub[s.mode] - floor < MODE_DECISIVE]
             starts.update({s.mode: s.theta for s in sub_solved})
@@ -553,14 +553,11 @@ def footprint_fit(
     chi2 = float(np.sum(range_rows * range_rows))
     chi2_dof = chi2 / dof
     cov_full = jtj_inv * max(1.0, chi2_dof)
-    # the sandwich (heteroscedasticity-consistent, HC1) covariance: the edge beams, whose first hit
-    # sits on the limb's steep range profile, scatter more than sigma_l and carry the radius
-    rows_all = _residuals(best.theta, frame, best.rays, optics, best.mode)
-    meat = (jac * (rows_all * rows_all)[:, None]).T @ jac
-    cov_sand = jtj_inv @ meat @ jtj_inv * (rows_all.size / max(rows_all.size - best.n_par, 1))
     # the profile of the cost in the radius: the first hit's radius trades off against tau along a
     # flat, rough ridge that the Gauss-Newton curvature J^T J does not see (its u was 4-5x below
-    # the spread of noise-only replicas); the variance is taken as the larger of the two
+    # the spread of noise-only replicas); the variance is taken as the larger of the two, the whole
+    # covariance scaled by their ratio (the axis point follows the radius along that ridge; see
+    # docs/cylinder.md section 7)
     var_jtj = float(cov_full[4, 4])
     var_prof = _profile_variance(best, frame, optics) * max(1.0, chi2_dof)
     prof_scale = max(1.0, var_prof / max(var_jtj, 1e-30))
@@ -591,7 +588,6 @@ def footprint_fit(
             "footprint_u_jtj_m": float(2.0 * np.sqrt(max(var_jtj, 0.0))),
             "footprint_u_profile_m": float(2.0 * np.sqrt(max(var_prof, 0.0))),
             "footprint_profile_scale": float(prof_scale),
-            "footprint_u_sandwich_m": float(2.0 * np.sqrt(max(cov_sand[4, 4], 0.0))),
         },
     )
 
@@ -663,6 +659,16 @@ def _fit_families(
             found = [found[int(np.argmin(crit))]]
         solved.extend(found)
     return solved
+
+
+def _thin_criterion(thin_res: FloatArray, gate: float, pick: IntArray | None = None) -> float:
+    """The thin beam's model-choice criterion from its line-of-sight residuals ``thin_res`` (the
+    range rows then the miss rows of the same beams, :func:`los_residuals`): every row truncated at
+    the gate, + 2 per parameter. ``pick``: the beams of a subsample, both rows of each counted."""
+    if pick is not None:
+        n = thin_res.size // 2
+        thin_res = thin_res[np.concatenate([pick, pick + n])]
+    return float(np.sum(np.minimum(thin_res * thin_res, gate * gate))) + 2 * 5
 
 
 def _aics(solved: list[_Solved], frame: _Frame, work: Rays, optics: BeamOptics, gate: float) -> dict[str, float]:

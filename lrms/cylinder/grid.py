@@ -59,7 +59,11 @@ def _base_cell(pts: FloatArray, k: int) -> float:
 
 def grid_normals(points: FloatArray, k: int = 32) -> FloatArray:
     """Unit normals ``(n, 3)`` by PCA of each point's grid neighbourhood holding at least ``k``
-    points (module docstring); the whole cloud's covariance where even the coarsest holds fewer."""
+    points and not a line (module docstring). The cell size doubles at most ``LEVELS - 1`` times
+    (to 128 times the first), and stops early once a cell exceeds the cloud's largest extent (the
+    3 x 3 x 3 neighbourhood then holds the whole cloud); points still left at that last size take
+    their neighbourhood's covariance whatever its count and shape (with few points there, the
+    normal is not meaningful)."""
     pts = np.asarray(points, dtype=np.float64)
     n = pts.shape[0]
     rel = pts - pts.min(axis=0)

@@ -273,12 +273,12 @@ def test_an_ideal_cloud_keeps_the_thin_beam_with_share_u_on() -> None:
     assert abs(fit.diameter - SEED003_DIAMETER) < 3 * fit.std_diameter + 2e-4
 
 
-def test_the_warm_started_first_hit_solve_and_its_jacobian_match_the_cold_ones() -> None:
-    """The solver's memory (_Warm: the last solution reused at the same parameters) changes neither
-    the first-hit ranges nor the Jacobian: the ranges equal a cold solve's within 1e-9 m after a
-    step, and the Jacobian through the memory still matches central differences through cold Newton
-    solves. (Starting Newton from the last solution moved 2 beams of this cloud to another root,
-    7-9 mm away: not done.)"""
+def test_the_first_hit_memory_reuses_only_the_same_parameters_and_its_jacobian_matches() -> None:
+    """The solver's memory (_Warm: the last solution reused at the same parameters) hands back the
+    stored ranges at the same parameters, solves afresh at others (equal to a cold solve there and
+    not the stored ranges), and the Jacobian through the memory matches central differences through
+    cold Newton solves. (Newton is never warm-started: a start from the last solution moved 2 beams
+    of this cloud to another root, 7-9 mm away.)"""
     from scipy.optimize._numdiff import approx_derivative
     from scipy.special import expit, logit
 
@@ -292,6 +292,11 @@ def test_the_warm_started_first_hit_solve_and_its_jacobian_match_the_cold_ones()
     warm = _Warm()
     theta0 = np.array([0.0, 0.0, 0.0, 0.0, 0.0, float(logit(0.12))])
     _residuals(theta0, frame, rays, optics, "first", 1.0, warm)
+    stored = warm.big_t
+    assert stored is not None
+    a0, w0, r0 = frame.unpack(theta0[:5])
+    again, _ = warm.solve(theta0.copy(), _geometry(a0, w0, float(r0), rays, optics, 1.0), float(expit(theta0[5])))
+    assert again is stored
     theta = theta0 + np.array([2e-4, -3e-4, 1e-3, -5e-4, 8e-4, 0.1])
     a, w, r = frame.unpack(theta[:5])
     g = _geometry(a, w, float(r), rays, optics, 1.0)
@@ -299,12 +304,28 @@ def test_the_warm_started_first_hit_solve_and_its_jacobian_match_the_cold_ones()
     got, _ = warm.solve(theta, g, tau)
     cold, _ = first_hit_range(g.x0, g.t_ca, g.cos_axis, g.radius, g.s0, g.sd, tau, g.c)
     assert np.max(np.abs(got - cold)) < 1e-9
+    assert np.max(np.abs(got - stored)) > 1e-4
     jac = _first_jacobian(theta, frame, rays, optics, warm)
     ref = approx_derivative(
         lambda th: _residuals(th, frame, rays, optics, "first"), theta, method="3-point", rel_step=1e-6
     )
     for j in range(theta.size):
         assert np.linalg.norm(jac[:, j] - ref[:, j]) <= 0.03 * np.linalg.norm(ref[:, j])
+
+
+def test_the_thin_beams_criterion_on_a_subsample_counts_its_miss_rows_too() -> None:
+    """The thin beam's criterion counts range and miss rows alike, on all beams and on a subsample
+    (the subsample's families are scored with their coverage rows: leaving out the thin beam's miss
+    rows there made it score too well)."""
+    from lrms.cylinder.footprint import _thin_criterion
+
+    ranges = np.array([1.0, 2.0, 3.0, 10.0])
+    misses = np.array([0.5, 0.0, 6.0, 1.0])
+    res = np.concatenate([ranges, misses])
+    assert _thin_criterion(res, 4.0) == pytest.approx(1 + 4 + 9 + 16 + 0.25 + 0 + 16 + 1 + 10)
+    pick = np.array([0, 2])
+    assert _thin_criterion(res, 4.0, pick) == pytest.approx(1 + 9 + 0.25 + 16 + 10)
+    assert _thin_criterion(res, 4.0, np.arange(4)) == _thin_criterion(res, 4.0)
 
 
 def test_the_model_choice_u_is_the_akaike_weighted_spread_of_the_families() -> None:
