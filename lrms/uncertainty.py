@@ -482,9 +482,9 @@ def _replica_fit(
 ) -> FloatArray:
     """Refit ``rep`` replicas: one batched solve from the truth (``theta = 0``), then, with
     ``multistart``, the fit's multi-start (:func:`lrms.cylinder._multistart`): restarts at radii
-    :data:`lrms.cylinder.MULTISTART` sigma_l around that solution, each screened by
-    :data:`lrms.cylinder.MULTISTART_SCREEN` steps (continued only where they beat the best cost so
-    far), the lowest cost wins."""
+    :data:`lrms.cylinder.MULTISTART` sigma_l around that solution, each given
+    :data:`lrms.cylinder.MULTISTART_SCREEN` (20) steps, about a full solve, and continued by a
+    fresh solve where they beat the best cost so far, as in the fit; the lowest cost wins."""
     idx = np.arange(rep)
     theta = batched_levenberg_marquardt(fun, jfun, np.zeros((rep, 5)), max_iter=iterations)
     if not multistart:
@@ -502,7 +502,7 @@ def _replica_fit(
     for dr in MULTISTART:
         start = np.where(np.isfinite(theta), theta, 0.0)
         start[:, 4] += dr * sigma_l
-        # screened as in the fit: a few steps, continued only where they beat the best so far
+        # as in the fit: MULTISTART_SCREEN steps, continued where they beat the best so far
         trial = batched_levenberg_marquardt(fun, jfun, start, max_iter=MULTISTART_SCREEN)
         c = cost(trial)
         go = np.flatnonzero(c < best_cost)

@@ -30,8 +30,8 @@ Pipeline (:func:`fit_cylinder`; the details and measured numbers are in ``docs/c
      :data:`SILHOUETTE_SIGMA`, so the objective stays continuous at the silhouette. Inliers are
      re-selected on the candidates (range residual below :data:`INLIER_GATE` sigma, miss below
      :data:`MISS_GATE` lateral sigmas, with hysteresis), then the fit is restarted from nearby
-     radii (:data:`MULTISTART`, each start screened by :data:`MULTISTART_SCREEN` steps) because
-     the silhouette makes the likelihood multi-modal.
+     radii (:data:`MULTISTART`, each start given :data:`MULTISTART_SCREEN` steps, then continued
+     where it is best) because the silhouette makes the likelihood multi-modal.
    * *orthogonal distance* (``line_of_sight=False``): ``(|distance to axis| - r) / sigma``, the
      right fit for isotropic noise. On a one-sided view with range noise it is biased low.
 

@@ -91,8 +91,9 @@ def _multistart(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: DetectOption
     several local minima a few tenths of sigma_l apart; one LM run from the orthogonal fit's
     (biased) start does not always reach the best. The starts are compared on the same inliers
     (a random subset of at most :data:`MULTISTART_WORK` of them), the winner is refined on all.
-    Each extra start is screened (:func:`_screened_start`): it is solved to its end only if a
-    few steps take it below the best cost so far.
+    Each extra start gets :data:`MULTISTART_SCREEN` LM steps (:func:`_screened_start`; about a
+    full solve since a 2-step screen was measured to miss most lower minima) and a fresh solve
+    where that leads below the best cost so far.
     """
     idx = fit.inliers
     work = MULTISTART_WORK
@@ -116,8 +117,8 @@ def _multistart(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: DetectOption
 
 def _screened_start(prob: LosProblem, start: Cylinder, best_cost: float) -> tuple[Cylinder, float]:
     """An extra start of the multi-start: :data:`MULTISTART_SCREEN` LM steps, continued to the
-    end only when they already lead below ``best_cost`` (a start that falls back into the
-    centre's minimum does not, and took 12-18 steps to get there). The replicas of
+    end by a fresh solve when they lead below ``best_cost`` (at 20 steps most starts have
+    converged; see :data:`MULTISTART_SCREEN`). The replicas of
     :func:`lrms.uncertainty.monte_carlo_interval` apply the same rule."""
     cyl, lin = levenberg_marquardt(prob, start, max_iter=MULTISTART_SCREEN)
     if lin.cost < best_cost:
