@@ -10,8 +10,7 @@ import json
 import numpy as np
 import pytest
 
-from lrms.calibration import Artefact, CalibrationOptions, CalibrationResult, Observations, calibrate
-from lrms.calibration import CalibrationError
+from lrms.calibration import Artefact, CalibrationError, CalibrationOptions, CalibrationResult, Observations, calibrate
 from lrms.calibration.optics import MIN_LIMB_BEAMS, estimate_spot_scale, fit_spot_scale, limb_echo
 from lrms.cylinder import BeamOptics
 from lrms.kinematics import RigCalibration, RigModel
