@@ -288,7 +288,9 @@ def _footprint_json(extra: dict[str, float]) -> dict[str, Any]:
 
 def optics_for(config: RigConfig, calibration: StoredCalibration | None = None) -> Any:
     """The fit's beam optics from ``[scanner.optics]`` (``None``: the thin beam), with the active
-    calibration's spot scale applied when it has one (``CalibrationResult.beam_optics``)."""
+    calibration's spot scale applied when it has one (``CalibrationResult.beam_optics``: the scale
+    times the nominal spot stored with it; :class:`CalibrationError` when ``[scanner.optics]`` gives
+    another nominal spot than the calibration's)."""
     if config.optics_model == "ideal":
         return None
     from lrms.cylinder import BeamOptics

@@ -14,6 +14,7 @@ See docs/calibration.md for the model, the artefacts and the identifiability rul
 from __future__ import annotations
 
 import datetime
+import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -40,6 +41,8 @@ from lrms.calibration.result import CalibrationResult, Identifiability, PoseFit,
 from lrms.covariance import NoiseModel
 from lrms.cylinder import BeamOptics
 from lrms.kinematics import RigModel
+
+_log = logging.getLogger(__name__)
 
 __all__ = [
     "GOAL",
@@ -154,6 +157,12 @@ def calibrate(
         spot = _spot_scale(adj, RigModel.from_vector(adj.state.rig), opts.optics, names, cov_free)
         if spot is None or abs(spot.scale - spot_scale) <= 2 * spot.u:
             break
+        if _stage == 1:  # the rig was adjusted with another scale than the one it gives: say so
+            _log.warning(
+                "spot scale %.4g (u %.2g) differs from the %.4g the final adjustment assumed by more than 2 u",
+                spot.scale, spot.u, spot_scale,
+            )  # fmt: skip
+            break
         spot_scale = spot.scale
 
     idx = [RigModel.NAMES.index(n) for n in names]
@@ -200,7 +209,15 @@ def calibrate(
         created=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         software_version=lrms.__version__,
         poses=_pose_fits(adj, sweeps) if separate else (),
-        optics=None if spot is None else {"spot_scale": spot.scale, "spot_scale_u": spot.u},
+        optics=None
+        if spot is None or opts.optics is None
+        else {
+            "spot_scale": spot.scale,
+            "spot_scale_u": spot.u,
+            "exit_diameter_m": opts.optics.exit_diameter_m,
+            "divergence_rad": opts.optics.divergence_rad,
+            "assumed_scale": spot_scale,
+        },
         censored=dict(adj.censored) if opts.optics is not None else None,
     )
 

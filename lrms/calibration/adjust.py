@@ -204,8 +204,9 @@ class Adjustment:
         sweep (the first is the world: the identity, held). Without them, one pose for all beams.
         ``spot``: the light spot's Gaussian sigma ``s0 + sd x range`` as ``(s0, sd)`` (m, rad); given,
         beams whose spot is not wholly on their surface are censored (:meth:`_censor_footprint`) and
-        the sphere beams' expected range carries the spot's curvature bias (:func:`sphere_spot_bias`);
-        ``None``: the thin beam."""
+        the sphere beams' expected range carries the spot's energy-weighted echo on the sphere (the
+        ``limb_echo`` quadrature, :mod:`lrms.calibration.optics`; :func:`sphere_spot_bias` is only
+        the closed form it is tested against); ``None``: the thin beam."""
         self.obs = obs
         self.spot = spot
         #: Per beam: how much longer its energy-weighted echo on its sphere reads than its centre

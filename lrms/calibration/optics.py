@@ -162,6 +162,8 @@ def fit_spot_scale(
         best = float(optimize.minimize_scalar(ssr, bounds=(lo, hi), method="bounded", options={"xatol": 1e-5}).x)
         res = ranges - limb_echo(x0, t_ca, radius, best * (nominal_sigma[0] + nominal_sigma[1] * t_ca))[0]
         keep = np.abs(res) <= outlier_sigma * sigma_l
+    if int(keep.sum()) < MIN_LIMB_BEAMS:  # the last cut left too few for the final u
+        return None
     xs, ts, rs, ls = x0[keep], t_ca[keep], radius[keep], ranges[keep]
     base = nominal_sigma[0] + nominal_sigma[1] * ts
     h = 1e-3 * best

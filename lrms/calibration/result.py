@@ -10,6 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrms.calibration.data import CalibrationError
+from lrms.cylinder.footprint import LMS1XX_DIVERGENCE, LMS1XX_EXIT_DIAMETER
 from lrms.kinematics import RigModel
 
 FloatArray = NDArray[np.float64]
@@ -127,8 +128,12 @@ class CalibrationResult:
     software_version: str = ""
     #: One per sweep when the sweeps were adjusted with separate poses (empty: one shared pose).
     poses: tuple[PoseFit, ...] = ()
-    #: The scanner's spot scale from the spheres, ``{"spot_scale": s, "spot_scale_u": u}`` (multiplies
-    #: the nominal spot exit diameter and divergence); ``None`` when not estimated (thin beam, no spheres).
+    #: The scanner's spot scale from the spheres, ``{"spot_scale": s, "spot_scale_u": u,
+    #: "exit_diameter_m", "divergence_rad", "assumed_scale"}``: ``s`` multiplies the nominal spot
+    #: (exit diameter, divergence) it was estimated against, stored with it; ``assumed_scale`` is the
+    #: scale the final adjustment of the rig used (differs from ``s`` by more than 2 ``u`` when the
+    #: second stage did not settle; absent in older files). ``None`` when not estimated (thin beam,
+    #: no spheres).
     optics: dict[str, float] | None = None
     #: With a finite spot (``CalibrationOptions.optics``): beams left out of the adjustment because
     #: their spot was not wholly on their surface, by surface ("plane k", "sphere i": the artefact's
@@ -196,18 +201,30 @@ class CalibrationResult:
 
     def beam_optics(self, nominal: Any) -> Any:
         """``nominal`` (a :class:`lrms.cylinder.BeamOptics`) with this calibration's spot scale
-        applied (exit diameter and divergence times ``s``; ``spot_scale_u``, the relative uncertainty of
-        the spot size, ``u / s``); ``nominal``
-        itself when the calibration has no spot scale or ``nominal`` is ``None`` (thin beam)."""
+        applied: exit diameter and divergence are ``s`` x the nominal spot the scale was estimated
+        against (``optics["exit_diameter_m"]``, ``optics["divergence_rad"]``), ``spot_scale_u`` the
+        relative uncertainty of the spot size, ``u / s``. ``nominal`` itself when the calibration has
+        no spot scale or ``nominal`` is ``None`` (thin beam). Raises :class:`CalibrationError` when
+        ``nominal``'s exit diameter or divergence differs from the calibration's (the scale is
+        relative to that spot and would be applied to another)."""
         if self.optics is None or nominal is None:
             return nominal
         import dataclasses
+        import math
 
-        s, u = self.optics["spot_scale"], self.optics["spot_scale_u"]
+        o = self.optics
+        for key in ("exit_diameter_m", "divergence_rad"):
+            if not math.isclose(getattr(nominal, key), o[key], rel_tol=1e-9, abs_tol=1e-12):
+                raise CalibrationError(
+                    f"the calibration's spot scale is relative to the nominal spot {key} {o[key]:.6g}, "
+                    f"but the fit's optics give {getattr(nominal, key):.6g}: use the calibration's nominal spot "
+                    f"(exit {o['exit_diameter_m'] * 1e3:.6g} mm, divergence {o['divergence_rad'] * 1e3:.6g} mrad)"
+                )
+        s, u = o["spot_scale"], o["spot_scale_u"]
         return dataclasses.replace(
             nominal,
-            exit_diameter_m=nominal.exit_diameter_m * s,
-            divergence_rad=nominal.divergence_rad * s,
+            exit_diameter_m=o["exit_diameter_m"] * s,
+            divergence_rad=o["divergence_rad"] * s,
             spot_scale_u=min(u / s, 1.0),
         )
 
@@ -248,9 +265,29 @@ class CalibrationResult:
 
 
 def _optics(d: Any) -> dict[str, float] | None:
+    """The ``optics`` entry checked; a file without the nominal spot (older files) gets the LMS1xx
+    defaults it was estimated against."""
     if d is None:
         return None
     s, u = float(d["spot_scale"]), float(d["spot_scale_u"])
     if not (np.isfinite(s) and s > 0 and np.isfinite(u) and u >= 0):
         raise ValueError(f"optics: spot_scale must be > 0 and spot_scale_u >= 0, got {s}, {u}")
-    return {"spot_scale": s, "spot_scale_u": u}
+    out = {
+        "spot_scale": s,
+        "spot_scale_u": u,
+        "exit_diameter_m": float(d.get("exit_diameter_m", LMS1XX_EXIT_DIAMETER)),
+        "divergence_rad": float(d.get("divergence_rad", LMS1XX_DIVERGENCE)),
+    }
+    if not (0 <= out["exit_diameter_m"] <= 0.5 and 0 <= out["divergence_rad"] <= 0.5):
+        raise ValueError(
+            f"optics: exit_diameter_m and divergence_rad must be within [0, 0.5], "
+            f"got {out['exit_diameter_m']}, {out['divergence_rad']}"
+        )
+    if out["exit_diameter_m"] == 0 and out["divergence_rad"] == 0:
+        raise ValueError("optics: the nominal spot must not be of zero size")
+    if d.get("assumed_scale") is not None:
+        a = float(d["assumed_scale"])
+        if not (np.isfinite(a) and a > 0):
+            raise ValueError(f"optics: assumed_scale must be > 0, got {a}")
+        out["assumed_scale"] = a
+    return out

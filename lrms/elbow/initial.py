@@ -355,6 +355,7 @@ def _slice_start(
     cache: dict[tuple[float, ...], Cylinder] = {}
     errors: list[str] = []
     refined_first = False
+    first_turned: tuple[ElbowParams, ElbowParams] | None = None
     for e1, e2 in _end_candidates(pts, centroid):
         try:
             cand, corner = _from_ends(pts, sample, centroid, e1, e2, degree, ratio, flange, g, cache)
@@ -375,8 +376,11 @@ def _slice_start(
             turned = _refine_rotation(sample, cand, corner, ratio, flange)
             if _robust_spread(sample, turned) < QUIET * turned.D:
                 return turned
+            first_turned = (cand, turned)  # kept: reused when this pair stays the best
     if best is None:
         raise FitError(errors[0] if errors else "no elbow found")
+    if first_turned is not None and first_turned[0] is best:
+        return first_turned[1]
     return _refine_rotation(sample, best, best_corner, ratio, flange)
 
 

@@ -202,6 +202,10 @@ def _print_text(d: dict[str, Any], out: str | None) -> None:
         )
     if d.get("optics"):
         o = d["optics"]
-        print(f"spot scale from the spheres: {o['spot_scale']:.3f} (u {o['spot_scale_u']:.3f}) x the nominal spot")
+        print(
+            f"spot scale from the spheres: {o['spot_scale']:.3f} (u {o['spot_scale_u']:.3f}) x the nominal spot"
+            f" ({1e3 * o['exit_diameter_m']:.3g} mm, {1e3 * o['divergence_rad']:.3g} mrad)"
+            + (f"; the rig was adjusted with {o['assumed_scale']:.3f}" if "assumed_scale" in o else "")
+        )
     if out:
         print(f"calibration written to {out}")

@@ -254,7 +254,7 @@ def room_spheres(diameter_factor: float = 1.0, name: str = "room-spheres") -> Sc
     scene = Scene(name)
     rot = _rot_z(np.deg2rad(ROOM_YAW_DEG))
     w = ROOM_WALLS
-    for name, axis, value in (
+    for wall, axis, value in (
         ("wall_x_min", 0, w["x_min"]),
         ("wall_x_max", 0, w["x_max"]),
         ("wall_y_min", 1, w["y_min"]),
@@ -264,7 +264,7 @@ def room_spheres(diameter_factor: float = 1.0, name: str = "room-spheres") -> Sc
     ):
         normal = np.zeros(3)
         normal[axis] = -np.sign(value)  # facing the rig
-        scene.add(Plane(rot @ (-normal * abs(value)), rot @ normal), remission=0.5, name=name)
+        scene.add(Plane(rot @ (-normal * abs(value)), rot @ normal), remission=0.5, name=wall)
     for i, (centre, diameter) in enumerate(ROOM_SPHERES):
         scene.add(Sphere(centre, diameter_factor * diameter / 2), remission=0.8, name=f"sphere{i}")
     return scene

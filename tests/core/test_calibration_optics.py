@@ -10,8 +10,8 @@ import json
 import numpy as np
 import pytest
 
-from lrms.calibration import Artefact, CalibrationOptions, CalibrationResult, Observations, calibrate
-from lrms.calibration.optics import estimate_spot_scale, limb_echo
+from lrms.calibration import Artefact, CalibrationError, CalibrationOptions, CalibrationResult, Observations, calibrate
+from lrms.calibration.optics import MIN_LIMB_BEAMS, estimate_spot_scale, fit_spot_scale, limb_echo
 from lrms.cylinder import BeamOptics
 from lrms.kinematics import RigCalibration, RigModel
 from sim.scene import LMS1xxSensor, Plane, Scene, SensorModel, Sphere, cast_beams, lms1xx_device_angles
@@ -115,3 +115,45 @@ def test_limb_echo_reads_short_near_the_limb_and_thin_inside() -> None:
     big, share_big = limb_echo(x0, np.full(4, t), np.full(4, r), np.full(4, 0.013))
     assert big[2] < thin[2] - 0.005  # a wide spot at the limb covers the sphere's nearer parts
     assert share_big[3] > 0.2  # and still meets the sphere beyond the thin-beam silhouette
+
+
+def test_the_stored_spot_scale_carries_its_nominal_spot_and_refuses_another(scaled_spot: CalibrationResult) -> None:
+    """The scale multiplies the nominal spot it was estimated against, stored with it; a fit with
+    another nominal spot is refused; an older file (no nominal stored) reads as the LMS1xx's."""
+    d = json.loads(scaled_spot.to_json())
+    o = d["optics"]
+    assert o["exit_diameter_m"] == 0.008 and o["divergence_rad"] == 0.015
+    assert o["assumed_scale"] > 0.0
+    d["optics"] = {**o, "exit_diameter_m": 0.01, "divergence_rad": 0.02}
+    other = CalibrationResult.from_dict(d)
+    assert other.optics == d["optics"]
+    applied = other.beam_optics(BeamOptics(exit_diameter_m=0.01, divergence_rad=0.02))
+    assert applied.exit_diameter_m == pytest.approx(0.01 * o["spot_scale"])
+    assert applied.divergence_rad == pytest.approx(0.02 * o["spot_scale"])
+    with pytest.raises(CalibrationError, match="exit_diameter_m"):
+        other.beam_optics(BeamOptics())  # 8 mm, 15 mrad: not the spot the scale refers to
+    with pytest.raises(CalibrationError, match="divergence_rad"):
+        other.beam_optics(BeamOptics(exit_diameter_m=0.01))
+    d["optics"] = {"spot_scale": 1.5, "spot_scale_u": 0.1}  # an older file
+    old = CalibrationResult.from_dict(d)
+    assert old.optics == {"spot_scale": 1.5, "spot_scale_u": 0.1, "exit_diameter_m": 0.008, "divergence_rad": 0.015}
+    assert old.beam_optics(BeamOptics()).exit_diameter_m == pytest.approx(0.012)
+    d["optics"] = {**o, "assumed_scale": 0.0}
+    with pytest.raises(CalibrationError, match="assumed_scale"):
+        CalibrationResult.from_dict(d)
+
+
+def test_too_few_limb_beams_after_the_second_outlier_cut_give_no_scale() -> None:
+    """20 central beams and 8 limb beams of scale 1, 2 limb beams of scale 1.6 and a gross one of
+    2.5: the first fit (pulled by the gross beam) keeps 30 beams (MIN_LIMB_BEAMS), the second drops
+    the two scale-1.6 beams: 28 left, too few for the final u."""
+    assert MIN_LIMB_BEAMS == 30
+    sig = (0.002, 0.004)
+    x0 = np.r_[np.zeros(20), np.linspace(0.085, 0.098, 8), np.linspace(0.09, 0.097, 2), [0.099]]
+    scale = np.r_[np.ones(28), [1.6, 1.6], [2.5]]
+    t, r = np.full(x0.size, 2.0), np.full(x0.size, 0.1)
+    ranges = limb_echo(x0, t, r, scale * (sig[0] + sig[1] * t))[0]
+    assert fit_spot_scale(x0, t, r, ranges, 0.001, sig) is None
+    ok = np.r_[np.arange(28), np.arange(28)[-8:]]  # 36 beams of scale 1: estimable
+    got = fit_spot_scale(x0[ok], t[ok], r[ok], ranges[ok], 0.001, sig)
+    assert got is not None and got.scale == pytest.approx(1.0, abs=1e-3)
