@@ -215,6 +215,10 @@ class Cia402CanMotor(Cia402Motor):
         self._last_sw: tuple[float, int] | None = None  # (SYNC time, statusword)
         #: the sample TPDOs' mappings (set at start-up: with or without the drive's time stamp)
         self.sample_tpdos: tuple[cia402.PdoMapping, cia402.PdoMapping] = cia402.SAMPLE_TPDOS_PLAIN
+        #: the sample TPDOs' layout is settled (mapped by this driver, or read back by a passive
+        #: master): until then no TPDO is decoded with a guessed layout (a drive still running in
+        #: the other layout, or another master's)
+        self._layout_known = False
         # (SYNC time, receive time, TPDO1's values by object index)
         self._pending_tpdo1: tuple[float, float, dict[int, int]] | None = None
         # unanswered SYNCs, oldest first; more than 0.5 s of them means answers were lost
@@ -289,6 +293,7 @@ class Cia402CanMotor(Cia402Motor):
                 self.sample_tpdos = cia402.SAMPLE_TPDOS_STAMPED
             for k, mapping in enumerate(self.sample_tpdos):
                 self._map_tpdo(k, list(mapping))
+            self._layout_known = True
             self._write_object(cia402.SYNC_COUNTER_OVERFLOW, 0, 0)
             self._configure_drive()
             self._setup_master_heartbeat()
@@ -299,6 +304,7 @@ class Cia402CanMotor(Cia402Motor):
             # layout this driver maps itself, with setup=1)
             if self._read_tpdo_mapping(0) == cia402.SAMPLE_TPDOS_STAMPED[0]:
                 self.sample_tpdos = cia402.SAMPLE_TPDOS_STAMPED
+            self._layout_known = True
         self._controlword = self._read_object(cia402.CONTROLWORD)
         if self._heartbeat_ms:
             self._last_heartbeat = self.clock()  # the watchdog starts now
@@ -489,6 +495,8 @@ class Cia402CanMotor(Cia402Motor):
             return t_sync
 
     def _on_tpdo1(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if not self._layout_known:
+            return
         try:
             values = cia402.unpack_pdo(self.sample_tpdos[0], bytes(data))
         except cia402.CodecError as exc:
@@ -503,6 +511,8 @@ class Cia402CanMotor(Cia402Motor):
             self._emit(pending, {})
 
     def _on_tpdo2(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if not self._layout_known:
+            return
         try:
             values = cia402.unpack_pdo(self.sample_tpdos[1], bytes(data))
         except cia402.CodecError as exc:
