@@ -8,8 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from lrms.cylinder.grid import grid_normals, nearest_in_grid
-from lrms.cylinder.model import Cylinder, perpendicular_frame
+from lrms.cylinder.grid import nearest_in_grid
+from lrms.cylinder.model import Cylinder, estimate_normals, perpendicular_frame
 from lrms.cylinder.options import DetectOptions
 from lrms.cylinder.refine import CylinderFit, refine_cylinder
 from lrms.errors import FitError
@@ -295,7 +295,7 @@ def background_planes(
     if opt.max_planes <= 0 or n < 3 * max(opt.min_inliers, 10):
         return Background([], np.arange(0), np.zeros((0, 3)), np.zeros(0, dtype=bool), np.zeros((0, 3)))
     idx = np.sort(g.choice(n, size=opt.wall_sample, replace=False)) if n > opt.wall_sample else np.arange(n)
-    data = np.hstack([pts[idx], grid_normals(pts[idx], opt.normal_k)])
+    data = np.hstack([pts[idx], estimate_normals(pts[idx], opt.normal_k)])
 
     class _Plane(PlaneModel):
         normal_weight = opt.threshold / float(np.deg2rad(30.0))
@@ -409,7 +409,7 @@ def detect_cylinder(
             raise FitError(f"normals must have one row per candidate, got {nrm.shape} for {m}")
         data = np.hstack([sub, nrm[pick]])
     else:
-        data = np.hstack([sub, grid_normals(sub, opt.normal_k)])
+        data = np.hstack([sub, estimate_normals(sub, opt.normal_k)])
 
     # a footprint widens the apparent part by up to a spot radius on each side (``opt.spot``)
     spot_r = 0.5 * (opt.spot[0] + opt.spot[1] * float(np.max(np.linalg.norm(sub, axis=1))))
