@@ -364,10 +364,11 @@ def test_the_first_hit_multi_start_leaves_a_small_local_minimum_of_the_radius_ta
     rays = rays_from_points(pts).subset(thin.inliers)
     frame = _Frame.at(thin.cylinder.with_point_near(pts[thin.inliers].mean(axis=0)))
     optics = BeamOptics()
-    bad = np.array([0.0, 0.0, 0.0, 0.0, -0.035, float(logit(0.03))])
+    bad = np.array([0.0, 0.0, 0.0, 0.0, -0.045, float(logit(0.03))])
     (single,) = _fit_families(frame, rays, optics, ("first",), {"first": bad}, 4.0)
     d_single = 2.0 * float(frame.unpack(single.theta[:5])[2])
-    assert d_single - SEED003_DIAMETER < -0.006  # measured -9.6 mm, tau 0.06
+    print(f"single start: {(d_single - SEED003_DIAMETER) * 1e3:+.2f} mm")
+    assert d_single - SEED003_DIAMETER < -0.006  # measured -8.3 mm (from -35 mm: -9.6, then -5.5 with k-d tree normals)
     # the silhouette start of tau 0.5 (the cheapest of the three here) against the small minimum
     good = _first_starts(frame, optics, None)[-1]
     (multi,) = _fit_families(frame, rays, optics, ("first",), {"first": bad}, 4.0, [single.theta, good])
