@@ -494,13 +494,20 @@ class Cia402CanMotor(Cia402Motor):
                 self._pair_min_backlog = len(self._sync_times)
             return t_sync
 
-    def _on_tpdo1(self, can_id: int, data: bytearray, timestamp: float) -> None:
+    def _sample_tpdo(self, k: int, data: bytearray) -> dict[int, int] | None:
+        """Sample TPDO ``k + 1``'s values by object index; None before the layout is settled or
+        for a frame the layout does not decode."""
         if not self._layout_known:
-            return
+            return None
         try:
-            values = cia402.unpack_pdo(self.sample_tpdos[0], bytes(data))
+            return cia402.unpack_pdo(self.sample_tpdos[k], bytes(data))
         except cia402.CodecError as exc:
-            log.debug("node %d: TPDO1 ignored: %s", self.node_id, exc)
+            log.debug("node %d: TPDO%d ignored: %s", self.node_id, k + 1, exc)
+            return None
+
+    def _on_tpdo1(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        values = self._sample_tpdo(0, data)
+        if values is None:
             return
         now = self.clock()
         t = self._sync_time_for(now)
@@ -511,12 +518,8 @@ class Cia402CanMotor(Cia402Motor):
             self._emit(pending, {})
 
     def _on_tpdo2(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        if not self._layout_known:
-            return
-        try:
-            values = cia402.unpack_pdo(self.sample_tpdos[1], bytes(data))
-        except cia402.CodecError as exc:
-            log.debug("node %d: TPDO2 ignored: %s", self.node_id, exc)
+        values = self._sample_tpdo(1, data)
+        if values is None:
             return
         pending, self._pending_tpdo1 = self._pending_tpdo1, None
         if pending is not None:
