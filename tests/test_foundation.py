@@ -12,6 +12,7 @@ import pytest
 from drivers import url as durl
 from drivers.errors import DeviceURLError
 from tests.conftest import REPO
+from tests.fitprobe import fit_probe
 
 
 def test_url_parses_host_port_and_options() -> None:
@@ -109,20 +110,10 @@ def test_fit_of_a_file_imports_no_web_stack_config_or_plots(tmp_path: Path) -> N
     pts = np.column_stack([2.5 - 0.138 * np.cos(t), 0.138 * np.sin(t), rng.uniform(-0.2, 0.2, 400)])
     cloud = tmp_path / "c.csv"
     cloud.write_text("x,y,z\n" + "\n".join(f"{a:.6f},{b:.6f},{c:.6f}" for a, b, c in pts))
-    probe = (
-        "import sys, io, contextlib, json\n"
-        "from service.cli import main\n"
-        "buf = io.StringIO()\n"
-        "with contextlib.redirect_stdout(buf):\n"
-        f"    status = main.main(['fit', {str(cloud)!r}, '--no-line-of-sight', '--json'])\n"
-        "heavy = ('pydantic', 'service.config', 'service.sweep', 'mcap', 'fastapi', 'matplotlib', 'sqlalchemy')\n"
-        "print(status, round(json.loads(buf.getvalue())['diameter_m'], 3))\n"
-        "print('HEAVY:', ' '.join(m for m in heavy if m in sys.modules))\n"
-    )
-    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=REPO, check=True)
-    lines = out.stdout.strip().splitlines()
-    assert lines[-2] == "0 0.276", out.stdout[-300:]
-    assert lines[-1] == "HEAVY:", out.stdout[-300:]
+    heavy = ("pydantic", "service.config", "service.sweep", "mcap", "fastapi", "matplotlib", "sqlalchemy")
+    status, loaded = fit_probe(cloud, ["--no-line-of-sight"], heavy, 3)
+    assert status == "0 0.276", status
+    assert loaded == [], loaded
 
 
 def test_drivers_and_lrms_never_import_sim_or_service() -> None:

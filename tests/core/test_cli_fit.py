@@ -14,6 +14,7 @@ from bench import seed003_reproduction as seed
 from service.cli.main import main
 from service.pointio import write_xyz
 from tests.conftest import REPO
+from tests.fitprobe import fit_probe
 
 
 @pytest.fixture(scope="module")
@@ -173,22 +174,12 @@ def test_fit_of_a_file_leaves_scipy_unimported(tmp_path: Path, mode: list[str]) 
     cloud = tmp_path / "c.xyz"
     write_xyz(cloud, pts + rng.normal(0.0, 3e-4, pts.shape))
 
+    heavy = ("scipy.optimize", "scipy.stats", "scipy.ndimage", "matplotlib", "fastapi", "sqlalchemy", "pydantic")
+
     def probe(extra: list[str]) -> list[str]:
-        code = (
-            "import sys, io, contextlib, json\n"
-            "from service.cli import main\n"
-            "buf = io.StringIO()\n"
-            "with contextlib.redirect_stdout(buf):\n"
-            f"    status = main.main(['fit', {str(cloud)!r}, '--json', *{extra!r}])\n"
-            "print(status, round(json.loads(buf.getvalue())['diameter_m'], 2))\n"
-            "heavy = ('scipy.optimize', 'scipy.stats', 'scipy.ndimage',"
-            " 'matplotlib', 'fastapi', 'sqlalchemy', 'pydantic')\n"
-            "print('HEAVY:', *[m for m in heavy if m in sys.modules])\n"
-        )
-        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, check=True)
-        lines = out.stdout.strip().splitlines()
-        assert lines[-2] == "0 0.28", out.stdout[-300:]
-        return lines[-1].split()[1:]
+        status, loaded = fit_probe(cloud, extra, heavy, 2)
+        assert status == "0 0.28", status
+        return loaded
 
     assert probe(mode) == []
     if not mode:  # the guard can fail: the footprint-aware fit does need scipy.optimize
