@@ -216,6 +216,7 @@ def calibrate(
             "spot_scale_u": spot.u,
             "exit_diameter_m": opts.optics.exit_diameter_m,
             "divergence_rad": opts.optics.divergence_rad,
+            "profile_sigma": opts.optics.profile_sigma,
             "assumed_scale": spot_scale,
         },
         censored=dict(adj.censored) if opts.optics is not None else None,

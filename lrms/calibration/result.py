@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrms.calibration.data import CalibrationError
-from lrms.cylinder.footprint import LMS1XX_DIVERGENCE, LMS1XX_EXIT_DIAMETER
+from lrms.cylinder.footprint import LMS1XX_DIVERGENCE, LMS1XX_EXIT_DIAMETER, BeamOptics
 from lrms.kinematics import RigModel
 
 FloatArray = NDArray[np.float64]
@@ -129,8 +129,9 @@ class CalibrationResult:
     #: One per sweep when the sweeps were adjusted with separate poses (empty: one shared pose).
     poses: tuple[PoseFit, ...] = ()
     #: The scanner's spot scale from the spheres, ``{"spot_scale": s, "spot_scale_u": u,
-    #: "exit_diameter_m", "divergence_rad", "assumed_scale"}``: ``s`` multiplies the nominal spot
-    #: (exit diameter, divergence) it was estimated against, stored with it; ``assumed_scale`` is the
+    #: "exit_diameter_m", "divergence_rad", "profile_sigma", "assumed_scale"}``: ``s`` multiplies the
+    #: nominal spot (exit diameter, divergence, the Gaussian's sigma over the diameter) it was
+    #: estimated against, stored with it; ``assumed_scale`` is the
     #: scale the final adjustment of the rig used (differs from ``s`` by more than 2 ``u`` when the
     #: second stage did not settle; absent in older files). ``None`` when not estimated (thin beam,
     #: no spheres).
@@ -202,10 +203,11 @@ class CalibrationResult:
     def beam_optics(self, nominal: Any) -> Any:
         """``nominal`` (a :class:`lrms.cylinder.BeamOptics`) with this calibration's spot scale
         applied: exit diameter and divergence are ``s`` x the nominal spot the scale was estimated
-        against (``optics["exit_diameter_m"]``, ``optics["divergence_rad"]``), ``spot_scale_u`` the
+        against (``optics["exit_diameter_m"]``, ``optics["divergence_rad"]``, with the spot profile
+        ``optics["profile_sigma"]``), ``spot_scale_u`` the
         relative uncertainty of the spot size, ``u / s``. ``nominal`` itself when the calibration has
         no spot scale or ``nominal`` is ``None`` (thin beam). Raises :class:`CalibrationError` when
-        ``nominal``'s exit diameter or divergence differs from the calibration's (the scale is
+        ``nominal``'s exit diameter, divergence or profile sigma differs from the calibration's (the scale is
         relative to that spot and would be applied to another)."""
         if self.optics is None or nominal is None:
             return nominal
@@ -213,12 +215,13 @@ class CalibrationResult:
         import math
 
         o = self.optics
-        for key in ("exit_diameter_m", "divergence_rad"):
+        for key in ("exit_diameter_m", "divergence_rad", "profile_sigma"):
             if not math.isclose(getattr(nominal, key), o[key], rel_tol=1e-9, abs_tol=1e-12):
                 raise CalibrationError(
                     f"the calibration's spot scale is relative to the nominal spot {key} {o[key]:.6g}, "
                     f"but the fit's optics give {getattr(nominal, key):.6g}: use the calibration's nominal spot "
-                    f"(exit {o['exit_diameter_m'] * 1e3:.6g} mm, divergence {o['divergence_rad'] * 1e3:.6g} mrad)"
+                    f"(exit {o['exit_diameter_m'] * 1e3:.6g} mm, divergence {o['divergence_rad'] * 1e3:.6g} mrad,"
+                    f" profile sigma {o['profile_sigma']:.6g})"
                 )
         s, u = o["spot_scale"], o["spot_scale_u"]
         return dataclasses.replace(
@@ -264,6 +267,11 @@ class CalibrationResult:
         return cls.from_dict(data)
 
 
+#: The Gaussian's sigma over the spot diameter the fit's optics assume by default (older files were
+#: estimated against it).
+_LMS1XX_PROFILE_SIGMA = BeamOptics().profile_sigma
+
+
 def _optics(d: Any) -> dict[str, float] | None:
     """The ``optics`` entry checked; a file without the nominal spot (older files) gets the LMS1xx
     defaults it was estimated against."""
@@ -277,12 +285,15 @@ def _optics(d: Any) -> dict[str, float] | None:
         "spot_scale_u": u,
         "exit_diameter_m": float(d.get("exit_diameter_m", LMS1XX_EXIT_DIAMETER)),
         "divergence_rad": float(d.get("divergence_rad", LMS1XX_DIVERGENCE)),
+        "profile_sigma": float(d.get("profile_sigma", _LMS1XX_PROFILE_SIGMA)),
     }
     if not (0 <= out["exit_diameter_m"] <= 0.5 and 0 <= out["divergence_rad"] <= 0.5):
         raise ValueError(
             f"optics: exit_diameter_m and divergence_rad must be within [0, 0.5], "
             f"got {out['exit_diameter_m']}, {out['divergence_rad']}"
         )
+    if not (np.isfinite(out["profile_sigma"]) and 0 < out["profile_sigma"] <= 10):
+        raise ValueError(f"optics: profile_sigma must be within (0, 10], got {out['profile_sigma']}")
     if out["exit_diameter_m"] == 0 and out["divergence_rad"] == 0:
         raise ValueError("optics: the nominal spot must not be of zero size")
     if d.get("assumed_scale") is not None:

@@ -122,7 +122,7 @@ def test_the_stored_spot_scale_carries_its_nominal_spot_and_refuses_another(scal
     another nominal spot is refused; an older file (no nominal stored) reads as the LMS1xx's."""
     d = json.loads(scaled_spot.to_json())
     o = d["optics"]
-    assert o["exit_diameter_m"] == 0.008 and o["divergence_rad"] == 0.015
+    assert o["exit_diameter_m"] == 0.008 and o["divergence_rad"] == 0.015 and o["profile_sigma"] == 0.25
     assert o["assumed_scale"] > 0.0
     d["optics"] = {**o, "exit_diameter_m": 0.01, "divergence_rad": 0.02}
     other = CalibrationResult.from_dict(d)
@@ -134,9 +134,15 @@ def test_the_stored_spot_scale_carries_its_nominal_spot_and_refuses_another(scal
         other.beam_optics(BeamOptics())  # 8 mm, 15 mrad: not the spot the scale refers to
     with pytest.raises(CalibrationError, match="divergence_rad"):
         other.beam_optics(BeamOptics(exit_diameter_m=0.01))
+    with pytest.raises(CalibrationError, match="profile_sigma"):  # the same diameter read as another Gaussian
+        other.beam_optics(BeamOptics(exit_diameter_m=0.01, divergence_rad=0.02, profile_sigma=0.3))
+    bad = {**d, "optics": {**o, "profile_sigma": 0.0}}
+    with pytest.raises(CalibrationError, match="profile_sigma"):
+        CalibrationResult.from_dict(bad)
     d["optics"] = {"spot_scale": 1.5, "spot_scale_u": 0.1}  # an older file
     old = CalibrationResult.from_dict(d)
-    assert old.optics == {"spot_scale": 1.5, "spot_scale_u": 0.1, "exit_diameter_m": 0.008, "divergence_rad": 0.015}
+    lms1xx = {"exit_diameter_m": 0.008, "divergence_rad": 0.015, "profile_sigma": 0.25}
+    assert old.optics == {"spot_scale": 1.5, "spot_scale_u": 0.1, **lms1xx}
     assert old.beam_optics(BeamOptics()).exit_diameter_m == pytest.approx(0.012)
     d["optics"] = {**o, "assumed_scale": 0.0}
     with pytest.raises(CalibrationError, match="assumed_scale"):
