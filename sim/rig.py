@@ -36,6 +36,13 @@ from sim.scene import SENSOR_NAMES, Scene, Sensor, make_sensor, sensor_name
 
 FloatArray = NDArray[np.float64]
 _channels = itertools.count(1)
+#: The heartbeat tolerance the simulated rig's motor URL asks of the CANopen driver, in heartbeat
+#: periods (``heartbeat_lost``; 100 ms each): 2 s instead of the driver's 0.5 s. The simulated drive
+#: and the driver share the host's CPUs with everything else; at load 9-11 on two cores an idle
+#: ``lrms serve`` faulted its simulated drive (``heartbeat lost: node 1 silent for 511-1015 ms``)
+#: before about half its sweeps. A real rig keeps the driver's default (its drive runs on its own
+#: hardware); a test of the watchdog itself sets its own URL.
+SIM_HEARTBEAT_LOST = 20
 #: The control channel's commands (one per line on the stdin of ``python -m sim.rig``).
 COMMANDS = ("drop_scanner", "kill_scanner", "motor_fault [KIND]", "drive_state", "scanner_stats", "describe")
 
@@ -119,7 +126,7 @@ class SimulatedRig:
 
                 self.can_drive: Any = SimulatedCanDrive(node=node, drive=self.drive)
                 self._closers.append(self.can_drive.close)
-                self.motor_url = self.can_drive.url
+                self.motor_url = f"{self.can_drive.url}&heartbeat_lost={SIM_HEARTBEAT_LOST:g}"
             else:
                 import can as pycan
 
@@ -135,7 +142,7 @@ class SimulatedRig:
 
                 self._closers.append(stop_node)
                 self.can_drive = node_obj
-                self.motor_url = f"canopen+virtual://{channel}?node={node}"
+                self.motor_url = f"canopen+virtual://{channel}?node={node}&heartbeat_lost={SIM_HEARTBEAT_LOST:g}"
         except BaseException:
             self.close()
             raise
