@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -57,6 +58,14 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
         proc.communicate(timeout=30)
 
 
+def _reset(server: str) -> None:
+    """Clear a drive fault: on a loaded machine (load average 10 on 2 cores) the idle simulated
+    drive of ``lrms serve`` has missed the rig's heartbeat and faulted ("heartbeat lost: node 1
+    silent for 550-1015 ms"); that is the rig's matter, not this client's."""
+    reset = httpx.post(f"{server}/api/v1/rig/reset", headers={"Authorization": f"Bearer {TOKEN}"}, timeout=30)
+    assert reset.status_code == 200 and reset.json()["ok"], reset.text
+
+
 def _measure(args: list[str], env: dict[str, str]) -> subprocess.CompletedProcess[str]:
     return subprocess.run([*LRMS, "measure", *args], cwd=REPO, env=env, capture_output=True, text=True, timeout=180)
 
@@ -66,10 +75,7 @@ def test_measure_on_a_running_service_prints_its_result_and_fetches_the_raw_log(
     (with the measurement's id and the URLs of its raw log and cloud); ``--out`` / ``--cloud``
     fetch those. A probe runs the command in a process that then lists what it loaded: no numpy,
     pydantic, web stack or HTTP library (the rig and the fit are the service's)."""
-    # on a loaded machine the idle simulated drive can miss the rig's heartbeat and fault (seen
-    # with load averages of 10 on 2 cores); that is the rig's matter, not this client's
-    reset = httpx.post(f"{server}/api/v1/rig/reset", headers={"Authorization": f"Bearer {TOKEN}"}, timeout=30)
-    assert reset.status_code == 200 and reset.json()["ok"], reset.text
+    _reset(server)
     out, cloud = tmp_path / "run.mcap", tmp_path / "run.ply"
     argv = ["measure", "--server", server, "--target", "cylinder", "--speed", "45", "--quiet"]
     argv += ["--out", str(out), "--cloud", str(cloud)]
@@ -82,9 +88,14 @@ def test_measure_on_a_running_service_prints_its_result_and_fetches_the_raw_log(
         "print(buf.getvalue())\n"
         f"print('STATUS', status, 'HEAVY:', *[m for m in {HEAVY!r} if m in sys.modules])\n"
     )
-    proc = subprocess.run(
-        [sys.executable, "-c", code], cwd=REPO, env=_env(LRMS_OPERATOR_TOKEN=TOKEN), capture_output=True, text=True
-    )
+    for attempt in (1, 2):
+        proc = subprocess.run(
+            [sys.executable, "-c", code], cwd=REPO, env=_env(LRMS_OPERATOR_TOKEN=TOKEN), capture_output=True, text=True
+        )
+        if attempt == 1 and "heartbeat lost" in proc.stderr:  # the rig's fault under load (see _reset)
+            _reset(server)
+            continue
+        break
     assert proc.returncode == 0, proc.stderr[-2000:]
     body, last = proc.stdout.rstrip().rsplit("\n", 1)
     assert last == "STATUS 0 HEAVY:", (last, proc.stderr[-2000:])
@@ -116,3 +127,36 @@ def test_refusals_are_one_line_errors(server: str) -> None:
     # nothing was queued by the refused requests
     listed = httpx.get(f"{server}/api/v1/measurements", timeout=10).json()
     assert all(m["request"]["sweep"].get("speed_deg_s") != 4500 for m in listed)
+
+
+def test_ctrl_c_cancels_the_measurement_on_the_service(server: str) -> None:
+    _reset(server)
+    proc = subprocess.Popen(
+        [*LRMS, "measure", "--server", server, "--target", "cylinder", "--speed", "5", "--quiet"],
+        cwd=REPO,
+        env=_env(LRMS_OPERATOR_TOKEN=TOKEN),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        end = time.monotonic() + 60
+        running = None
+        while running is None:  # the newest measurement of the 5 deg/s sweep, once it runs
+            listed = httpx.get(f"{server}/api/v1/measurements", params={"limit": 1}, timeout=10).json()
+            if listed and listed[0]["request"]["sweep"].get("speed_deg_s") == 5 and listed[0]["state"] == "running":
+                running = listed[0]["id"]
+            assert proc.poll() is None and time.monotonic() < end, proc.communicate()
+            time.sleep(0.1)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 130 and "interrupted" in err, err
+    end = time.monotonic() + 60
+    while (state := httpx.get(f"{server}/api/v1/measurements/{running}", timeout=10).json()["state"]) == "running":
+        assert time.monotonic() < end, "the cancelled measurement still runs"
+        time.sleep(0.2)
+    assert state == "cancelled", state
