@@ -5,15 +5,19 @@ each command as a fresh process (``sys.executable -m service.cli.main ...``, the
 do), interleaved ``--reps`` times, and prints the least wall time and the least CPU time (user +
 system, from the process's own rusage: on a shared machine the CPU time moves less than the wall
 time) with their ratio to ``python -c pass`` measured in the same run. "fit imports" is the
-import work ``lrms fit FILE`` does for a cylinder (the modules its ``run`` imports; since issue
-15's second round the default fit imports nothing of scipy: normals and nearest neighbours on
+import work ``lrms fit FILE`` does for a cylinder (the modules its ``run`` imports; with pykdtree
+installed the default fit imports nothing of scipy: the normals' k-d tree is pykdtree's, about
+1 ms to import against 0.3 s for scipy.spatial's cKDTree, the fallback; nearest sampled points on
 grids, the plane's piece test in numpy, the footprint model and its scipy.special on first use);
 "fit 2k-point cloud" is the whole command on a 2,000-point cylinder (``--no-line-of-sight``).
 "measure: until the sweep starts"
 runs ``lrms measure`` on the default simulated rig (at 45 deg/s, so the run is short) and
 takes the time from starting the process to the raw log's measurement record, which the rig
 process writes just before it commands the approach move (``service.rig.Rig._measure``); its
-CPU column is empty (the work is spread over four processes). With ``--baseline-tree`` (another
+CPU column is empty (the work is spread over four processes). "measure --server: until the sweep
+starts" is the same time for ``lrms measure --server URL`` against an ``lrms serve`` of this tree
+that the bench starts once on 127.0.0.1 (the rig already up; the raw log fetched with ``--out``);
+its CPU column is the client process's own. With ``--baseline-tree`` (another
 checkout, e.g. ``git worktree add /tmp/startbase e86473c``) the lrms rows run on that tree too,
 interleaved, and the ratio baseline / this tree is printed.
 Part 2 reads 100,000-point clouds (.xyz, .csv with a header, ASCII and binary .ply) with
@@ -25,13 +29,15 @@ Goal (issue 15): ``lrms fit`` and ``lrms measure`` start in <= 0.3 s.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
+import secrets
 import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -64,17 +70,87 @@ def _run(cmd: list[str], tree: Path = REPO) -> tuple[float, float]:
 def _measure_start(tree: Path, tmp: Path) -> tuple[float, float]:
     """Seconds from starting ``lrms measure`` to its raw log's measurement record (the sweep's
     start); no CPU time (NaN)."""
-    from service.mcaplog import TOPIC_MEASUREMENT, read_log
-
     out = tmp / "measure.mcap"
     cmd = [sys.executable, "-m", "service.cli.main", *MEASURE_ARGS, "--data", str(tmp / "data"), "--out", str(out)]
     t0 = time.time_ns()
     proc = subprocess.run(cmd, cwd=tree, env=_env(tree), capture_output=True, text=True, check=False)
     if not out.exists():  # a failed measurement still copies its raw log (the start is in it)
         raise SystemExit(f"lrms measure on {tree} failed: {proc.stderr[-800:]}")
+    return _sweep_start(out, t0), math.nan
+
+
+def _sweep_start(out: Path, t0_ns: int) -> float:
+    """Seconds from ``t0_ns`` (``time.time_ns``) to the measurement record of the raw log ``out``."""
+    from service.mcaplog import TOPIC_MEASUREMENT, read_log
+
     msgs, _ = read_log(out)
-    t_rec = next(m.log_time_ns for m in msgs if m.topic == TOPIC_MEASUREMENT)
-    return (t_rec - t0) / 1e9, math.nan
+    return (next(m.log_time_ns for m in msgs if m.topic == TOPIC_MEASUREMENT) - t0_ns) / 1e9
+
+
+@contextlib.contextmanager
+def _serve(tmp: Path, token: str) -> Iterator[str]:
+    """``lrms serve`` of this tree on a free 127.0.0.1 port (default simulated rig): its URL once the
+    scanner is connected."""
+    import json
+    import urllib.request
+
+    from service.cli.serve import LISTENING
+
+    env = dict(_env(REPO), LRMS_OPERATOR_TOKEN=token)
+    cmd = [sys.executable, "-m", "service.cli.main", "serve", "--port", "0", "--data", str(tmp / "serve")]
+    proc = subprocess.Popen(
+        [*cmd, "--log-level", "warning"],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        url = next((line[len(LISTENING) :].strip() for line in proc.stdout if line.startswith(LISTENING)), None)
+        if url is None:
+            raise SystemExit(f"lrms serve exited ({proc.wait()}) without listening")
+        end = time.monotonic() + 60
+        while True:
+            with contextlib.suppress(OSError, ValueError), urllib.request.urlopen(f"{url}/api/v1/rig", timeout=10) as r:
+                if json.load(r)["scanner"]["connected"]:
+                    break
+            if proc.poll() is not None or time.monotonic() > end:
+                raise SystemExit("lrms serve did not come up")
+            time.sleep(0.2)
+        yield url
+    finally:
+        proc.terminate()
+        proc.wait(30)
+
+
+def _measure_server_start(url: str, token: str, tmp: Path) -> tuple[float, float]:
+    """Seconds from starting ``lrms measure --server URL`` to the raw log's measurement record,
+    and the client process's CPU seconds. A drive fault left by an earlier run (on a loaded
+    machine the idle simulated drive can miss the rig's heartbeat) is reset first and the run
+    repeated once, with a note on stderr."""
+    import urllib.request
+
+    out = tmp / "measure-server.mcap"
+    cmd = [sys.executable, "-m", "service.cli.main", *MEASURE_ARGS, "--server", url, "--out", str(out)]
+    env = dict(_env(REPO), LRMS_OPERATOR_TOKEN=token)
+    for attempt in (1, 2):
+        out.unlink(missing_ok=True)
+        t0 = time.time_ns()
+        proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        _, status, usage = os.wait4(proc.pid, 0)
+        err = proc.stderr.read() if proc.stderr else ""
+        if os.waitstatus_to_exitcode(status) == 0 and out.exists():
+            return _sweep_start(out, t0), usage.ru_utime + usage.ru_stime
+        if attempt == 1 and "faulted" in err:
+            print(f"(bench: the service's drive was faulted, reset: {err.strip()[-160:]})", file=sys.stderr)
+            auth = {"Authorization": f"Bearer {token}"}
+            reset = urllib.request.Request(f"{url}/api/v1/rig/reset", method="POST", headers=auth)
+            urllib.request.urlopen(reset, timeout=30).close()
+            continue
+        raise SystemExit(f"lrms measure --server {url} failed: {err[-500:]}")
+    raise AssertionError("unreachable")
 
 
 def _cylinder_file(path: Path, n: int) -> None:
@@ -89,6 +165,12 @@ Case = tuple[str, Callable[[Path], tuple[float, float]], bool]
 
 
 def start_times(reps: int, tmp: Path, baseline: Path | None) -> None:
+    token = secrets.token_hex(8)
+    with _serve(tmp, token) as url:
+        _start_times(reps, tmp, baseline, url, token)
+
+
+def _start_times(reps: int, tmp: Path, baseline: Path | None, url: str, token: str) -> None:
     small = tmp / "small.xyz"
     _cylinder_file(small, 2000)
     py = sys.executable
@@ -108,6 +190,7 @@ def start_times(reps: int, tmp: Path, baseline: Path | None) -> None:
         ("lrms fit imports", cmd([py, "-c", FIT_IMPORTS]), True),
         ("lrms fit 2k-point cloud", cmd([*lrms, "fit", str(small), "--no-line-of-sight", "--json"]), True),
         ("lrms measure: until the sweep starts", lambda tree: _measure_start(tree, tmp), True),
+        ("lrms measure --server: until the sweep starts", lambda tree: _measure_server_start(url, token, tmp), False),
     ]
     trees = [("", REPO)] + ([("base: ", baseline)] if baseline is not None else [])
     rows = [(tag + name, fn, tree) for name, fn, both in cases for tag, tree in trees if both or not tag]
@@ -121,11 +204,11 @@ def start_times(reps: int, tmp: Path, baseline: Path | None) -> None:
             walls[name].append(w)
             cpus[name].append(c)
     base_w, base_c = min(walls[rows[0][0]]), min(cpus[rows[0][0]])
-    print(f"{'command':<44} {'wall s':>7} {'x base':>7} {'cpu s':>7} {'x base':>7}")
+    print(f"{'command':<46} {'wall s':>7} {'x base':>7} {'cpu s':>7} {'x base':>7}")
     for name, _, _ in rows:
         w, c = min(walls[name]), min(cpus[name])
         cpu = f"{c:>7.3f} {c / base_c:>7.1f}" if math.isfinite(c) else f"{'-':>7} {'-':>7}"
-        print(f"{name:<44} {w:>7.3f} {w / base_w:>7.1f} {cpu}")
+        print(f"{name:<46} {w:>7.3f} {w / base_w:>7.1f} {cpu}")
     if baseline is not None:
         ratios = [f"{name}: {min(walls['base: ' + name]) / min(walls[name]):.2f}x" for name, _, both in cases if both]
         print("baseline tree / this tree (wall): " + "; ".join(ratios))

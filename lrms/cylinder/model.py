@@ -4,7 +4,11 @@ points (Eq. 1 inverted), neighbourhood normals."""
 from __future__ import annotations
 
 import math
+import os
+import threading
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -211,20 +215,89 @@ def rays_from_points(points: ArrayLike, p: float = kinematics.DEFAULT_P, noise: 
     )
 
 
-def estimate_normals(points: ArrayLike, k: int = 24, chunk: int = 50_000) -> FloatArray:
-    """Unit normals by PCA of each point's ``k`` nearest neighbours (smallest-eigenvalue axis)."""
+#: Which k-d tree :func:`estimate_normals` searches with: ``"auto"`` is pykdtree when it is
+#: installed, else scipy's ``cKDTree``; both return the exact k nearest neighbours.
+KnnBackend = Literal["auto", "pykdtree", "scipy"]
+
+_PYKDTREE_LOCK = threading.Lock()
+_pykdtree_class: list[Any] = []  # [KDTree or None] once the import was tried
+
+
+def _pykdtree() -> Any:
+    """pykdtree's ``KDTree``, imported on first use (about 1 ms, against 0.3 s for
+    :mod:`scipy.spatial`); ``None`` when it is not installed.
+
+    pykdtree parallelises its queries with OpenMP, by default on every core. Unless
+    ``OMP_NUM_THREADS`` is set, the import runs with ``OMP_NUM_THREADS=1`` (its bundled OpenMP
+    runtime reads the variable once, when it is loaded; the variable is removed again at once),
+    so its queries run on the calling thread alone like scipy's: the fits already run one per
+    core in the service and the reprocessing workers. ``OMP_NUM_THREADS=N`` before the first
+    fit asks for N threads.
+    """
+    with _PYKDTREE_LOCK:
+        if not _pykdtree_class:
+            pinned = "OMP_NUM_THREADS" not in os.environ
+            if pinned:
+                os.environ["OMP_NUM_THREADS"] = "1"
+            try:
+                from pykdtree.kdtree import KDTree
+
+                _pykdtree_class.append(KDTree)
+            except ImportError:
+                _pykdtree_class.append(None)
+            finally:
+                if pinned:
+                    os.environ.pop("OMP_NUM_THREADS", None)
+        return _pykdtree_class[0]
+
+
+def knn_query(points: FloatArray, backend: KnnBackend = "auto") -> Callable[[FloatArray, int], NDArray[np.integer]]:
+    """A k-d tree over ``points`` (``(n, 3)`` float64) as ``query(q, k)`` -> the indices ``(m, k)``
+    of each query point's ``k`` nearest points, nearest first (``k >= 2``, ``k <= n``).
+
+    ``backend="auto"`` takes pykdtree when installed, else scipy's ``cKDTree`` (imported on first
+    use). Both are exact and, for distinct distances, return the same indices in the same
+    order; where several points lie at exactly the same distance (duplicates, lattices) each
+    may pick a different one of them, as either might on another build.
+    """
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    kd = _pykdtree() if backend != "scipy" else None
+    if backend == "pykdtree" and kd is None:
+        raise ModuleNotFoundError("the pykdtree k-nearest-neighbour backend is not installed (pip install pykdtree)")
+    if kd is not None:
+        tree = kd(pts, leafsize=16)
+
+        def query(q: FloatArray, k: int) -> NDArray[np.integer]:
+            _, idx = tree.query(np.ascontiguousarray(q, dtype=np.float64), k=k)
+            return np.asarray(idx)
+
+        return query
+    from scipy.spatial import cKDTree  # 0.3 s of imports: only without pykdtree
+
+    ctree = cKDTree(pts, leafsize=16)
+
+    def cquery(q: FloatArray, k: int) -> NDArray[np.integer]:
+        _, idx = ctree.query(q, k=k)
+        return np.asarray(idx)
+
+    return cquery
+
+
+def estimate_normals(
+    points: ArrayLike, k: int = 24, chunk: int = 50_000, *, backend: KnnBackend = "auto"
+) -> FloatArray:
+    """Unit normals by PCA of each point's ``k`` nearest neighbours (smallest-eigenvalue axis);
+    the neighbours from :func:`knn_query` (``backend``)."""
     pts = np.asarray(points, dtype=np.float64)
     n = pts.shape[0]
     if n < 3:
         raise FitError(f"need at least 3 points for normals, got {n}")
-    from scipy.spatial import cKDTree  # the elbow's detection; the cylinder's uses lrms.cylinder.grid
-
     kk = int(min(max(k, 3), n))
-    tree = cKDTree(pts)
+    query = knn_query(pts, backend)
     cols = np.ascontiguousarray(pts.T)
     out = np.empty_like(pts)
     for s in range(0, n, chunk):
-        _, idx = tree.query(pts[s : s + chunk], k=kk)
+        idx = query(pts[s : s + chunk], kk)
         # the neighbourhoods' covariances from the six second moments, by coordinate (an
         # ``(n, k, 3)`` einsum took three times as long)
         x = cols[:, idx]  # (3, n, k)

@@ -21,6 +21,20 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--monte-carlo", type=int, default=0, metavar="N", help="Monte Carlo refits (0 = off)")
     parser.add_argument("--data", metavar="DIR", help="storage folder (overrides [storage] dir)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument(
+        "--server",
+        metavar="URL",
+        help="measure on a running 'lrms serve' at this base URL (e.g. http://127.0.0.1:8000) instead of "
+        "starting a rig here; not with --config, --data or --plot",
+    )
+    parser.add_argument(
+        "--token",
+        help="with --server: the operator or admin bearer token "
+        "(default: $LRMS_OPERATOR_TOKEN, $LRMS_ADMIN_TOKEN, $LRMS_API_TOKEN, the first one set)",
+    )
+    parser.add_argument(
+        "--timeout", type=float, default=30.0, help="with --server: seconds to wait for each answer (default 30)"
+    )
 
 
 def _bar(fraction: float, message: str, width: int = 30) -> str:
@@ -28,7 +42,29 @@ def _bar(fraction: float, message: str, width: int = 30) -> str:
     return f"\r[{'#' * n}{'.' * (width - n)}] {fraction * 100:5.1f}% {message[:50]:<50}"
 
 
+def request_body(args: argparse.Namespace) -> dict[str, object]:
+    """The measurement request (``MeasurementRequest``'s JSON) of the command's options."""
+    sweep = {
+        k: v
+        for k, v in (
+            ("start_deg", args.start),
+            ("stop_deg", args.stop),
+            ("speed_deg_s", args.speed),
+            ("mode", args.mode),
+        )
+        if v is not None
+    }
+    options: dict[str, object] = {"monte_carlo": args.monte_carlo}
+    if args.k is not None:
+        options["k"] = args.k
+    return {"target": args.target, "sweep": sweep, "options": options}
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.server is not None:  # a client of lrms serve: the standard library only
+        from service.cli.measure_remote import run_remote
+
+        return run_remote(args)
     import os
 
     # one BLAS thread: the fits are then bit-for-bit repeatable (lrms replay), and the rig's
@@ -49,21 +85,8 @@ def run(args: argparse.Namespace) -> int:
     from service.models import MeasurementRequest, resolve_sweep
     from service.rigproc import isolated_service
 
-    sweep = {
-        k: v
-        for k, v in (
-            ("start_deg", args.start),
-            ("stop_deg", args.stop),
-            ("speed_deg_s", args.speed),
-            ("mode", args.mode),
-        )
-        if v is not None
-    }
-    options: dict[str, object] = {"monte_carlo": args.monte_carlo}
-    if args.k is not None:
-        options["k"] = args.k
     try:
-        request = MeasurementRequest.model_validate({"target": args.target, "sweep": sweep, "options": options})
+        request = MeasurementRequest.model_validate(request_body(args))
     except ValueError as exc:
         raise ServiceError(f"bad measurement request: {exc}") from None
     cfg = load_config(args.config, storage_dir=args.data)

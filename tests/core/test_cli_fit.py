@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import subprocess
 import sys
@@ -163,10 +164,11 @@ def test_elbow_is_delegated_to_the_elbow_fit(tmp_path: Path, capsys: pytest.Capt
 @pytest.mark.parametrize("mode", [[], ["--no-line-of-sight"]], ids=["line-of-sight", "orthogonal"])
 def test_fit_of_a_file_leaves_scipy_unimported(tmp_path: Path, mode: list[str]) -> None:
     """The default cylinder fit of a file (thin beam: our own Levenberg-Marquardt, nearest
-    neighbours on grids; the normals by scipy's k-d tree, since grid normals failed grossly on
+    neighbours on grids; the normals by an exact k-d tree, since grid normals failed grossly on
     calibrated rig sweeps) runs without :mod:`scipy.optimize` (the footprint fit imports it on
     first use), :mod:`scipy.ndimage` or :mod:`scipy.stats`, each a tenth of a second or more of the command's start
-    (bench/bench_cli_start.py). A probe process runs the command itself and lists what it
+    (bench/bench_cli_start.py), and, with pykdtree installed (the normals' k-d tree then), without
+    :mod:`scipy.spatial` (0.3 s). A probe process runs the command itself and lists what it
     loaded; ``--optics lms1xx`` does load scipy.optimize."""
     rng = np.random.default_rng(3)
     t = rng.uniform(-1.0, 1.0, 600)
@@ -175,6 +177,8 @@ def test_fit_of_a_file_leaves_scipy_unimported(tmp_path: Path, mode: list[str]) 
     write_xyz(cloud, pts + rng.normal(0.0, 3e-4, pts.shape))
 
     heavy = ("scipy.optimize", "scipy.stats", "scipy.ndimage", "matplotlib", "fastapi", "sqlalchemy", "pydantic")
+    if importlib.util.find_spec("pykdtree") is not None:  # cKDTree is the normals' fallback without it
+        heavy += ("scipy.spatial",)
 
     def probe(extra: list[str]) -> list[str]:
         status, loaded = fit_probe(cloud, extra, heavy, 2)
