@@ -58,14 +58,6 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
         proc.communicate(timeout=30)
 
 
-def _reset(server: str) -> None:
-    """Clear a drive fault: on a loaded machine (load average 10 on 2 cores) the idle simulated
-    drive of ``lrms serve`` has missed the rig's heartbeat and faulted ("heartbeat lost: node 1
-    silent for 550-1015 ms"); that is the rig's matter, not this client's."""
-    reset = httpx.post(f"{server}/api/v1/rig/reset", headers={"Authorization": f"Bearer {TOKEN}"}, timeout=30)
-    assert reset.status_code == 200 and reset.json()["ok"], reset.text
-
-
 def _measure(args: list[str], env: dict[str, str]) -> subprocess.CompletedProcess[str]:
     return subprocess.run([*LRMS, "measure", *args], cwd=REPO, env=env, capture_output=True, text=True, timeout=180)
 
@@ -75,7 +67,6 @@ def test_measure_on_a_running_service_prints_its_result_and_fetches_the_raw_log(
     (with the measurement's id and the URLs of its raw log and cloud); ``--out`` / ``--cloud``
     fetch those. A probe runs the command in a process that then lists what it loaded: no numpy,
     pydantic, web stack or HTTP library (the rig and the fit are the service's)."""
-    _reset(server)
     out, cloud = tmp_path / "run.mcap", tmp_path / "run.ply"
     argv = ["measure", "--server", server, "--target", "cylinder", "--speed", "45", "--quiet"]
     argv += ["--out", str(out), "--cloud", str(cloud)]
@@ -88,14 +79,9 @@ def test_measure_on_a_running_service_prints_its_result_and_fetches_the_raw_log(
         "print(buf.getvalue())\n"
         f"print('STATUS', status, 'HEAVY:', *[m for m in {HEAVY!r} if m in sys.modules])\n"
     )
-    for attempt in (1, 2):
-        proc = subprocess.run(
-            [sys.executable, "-c", code], cwd=REPO, env=_env(LRMS_OPERATOR_TOKEN=TOKEN), capture_output=True, text=True
-        )
-        if attempt == 1 and "heartbeat lost" in proc.stderr:  # the rig's fault under load (see _reset)
-            _reset(server)
-            continue
-        break
+    proc = subprocess.run(
+        [sys.executable, "-c", code], cwd=REPO, env=_env(LRMS_OPERATOR_TOKEN=TOKEN), capture_output=True, text=True
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     body, last = proc.stdout.rstrip().rsplit("\n", 1)
     assert last == "STATUS 0 HEAVY:", (last, proc.stderr[-2000:])
@@ -130,7 +116,6 @@ def test_refusals_are_one_line_errors(server: str) -> None:
 
 
 def test_ctrl_c_cancels_the_measurement_on_the_service(server: str) -> None:
-    _reset(server)
     proc = subprocess.Popen(
         [*LRMS, "measure", "--server", server, "--target", "cylinder", "--speed", "5", "--quiet"],
         cwd=REPO,
