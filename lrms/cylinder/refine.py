@@ -257,7 +257,8 @@ def refine_cylinder(
 ) -> CylinderFit:
     """Least-squares refinement from ``initial`` with inlier re-selection on ``points``.
 
-    Rounds before the last work on at most ``work_size`` random inliers; the final solve always
+    Rounds before the last work on at most ``work_size`` random inliers (those of the lowest rank
+    in one random order of the points, so consecutive rounds share most of them); the final solve always
     uses every inlier (unless ``final_full`` is false: then the result may come from the subset,
     as a start for further work).
 
