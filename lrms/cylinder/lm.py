@@ -14,7 +14,7 @@ pipeline's time on small clouds. Results equal scipy's LM at its tolerances (tes
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -48,6 +48,9 @@ class Linearised:
     e1: FloatArray
     e2: FloatArray
     residuals: FloatArray
+    #: what :meth:`LosProblem.complete` / :meth:`OrthogonalProblem.complete` need to add the
+    #: normal matrix and gradient to a cost-only linearisation without evaluating again
+    state: object = field(default=None, repr=False, compare=False)
 
 
 class LosProblem:
@@ -60,6 +63,18 @@ class LosProblem:
         n = self.l.shape[0]
         self.isl = 1.0 / np.broadcast_to(np.asarray(rays.sigma_l, dtype=np.float64), (n,))
         self.isp = 1.0 / np.broadcast_to(np.asarray(rays.sigma_perp, dtype=np.float64), (n,))
+
+    @classmethod
+    def of_rows(cls, rays: Rays, rows: NDArray[np.intp]) -> LosProblem:
+        """The problem of the beams ``rows`` of ``rays``, gathered straight into the by-coordinate
+        layout (one copy of each array instead of :meth:`Rays.subset`'s and then this one's)."""
+        new = cls.__new__(cls)
+        new.o = rays.origins.T[:, rows]
+        new.u = rays.dirs.T[:, rows]
+        new.l = rays.ranges[rows]
+        new.isl = 1.0 / np.broadcast_to(np.asarray(rays.sigma_l, dtype=np.float64), rays.ranges.shape)[rows]
+        new.isp = 1.0 / np.broadcast_to(np.asarray(rays.sigma_perp, dtype=np.float64), rays.ranges.shape)[rows]
+        return new
 
     @property
     def size(self) -> int:
@@ -77,6 +92,14 @@ class LosProblem:
     ) -> Linearised:
         lin, _ = self._evaluate(cyl, jacobian, frame, dense=False)
         return lin
+
+    def complete(self, lin: Linearised) -> Linearised:
+        """A cost-only linearisation (``jacobian=False``) with its normal matrix and gradient,
+        from the intermediates it kept (no second pass over the beams' geometry)."""
+        if lin.state is None:
+            return lin
+        full, _ = self._jacobian_part(lin, *lin.state, dense=False)  # type: ignore[misc]
+        return full
 
     def jacobian(self, cyl: Cylinder, frame: tuple[FloatArray, FloatArray] | None = None) -> FloatArray:
         """The whitened Jacobian ``(2N, 5)`` at ``theta = 0`` (range rows, then miss rows; the miss
@@ -111,8 +134,28 @@ class LosProblem:
         res_g = gap * self.isp
         cost = float(res_r @ res_r + res_g @ res_g)
         residuals = np.concatenate([res_r, res_g])
+        state = (r, v1, v2, vw, ue1, ue2, uw, aa, t, hit, res_r, res_g)
         if not jacobian:
-            return Linearised(cost, np.zeros((5, 5)), np.zeros(5), e1, e2, residuals), None
+            return Linearised(cost, np.zeros((5, 5)), np.zeros(5), e1, e2, residuals, state), None
+        return self._jacobian_part(Linearised(cost, np.zeros((5, 5)), np.zeros(5), e1, e2, residuals), *state, dense)
+
+    def _jacobian_part(
+        self,
+        lin: Linearised,
+        r: float,
+        v1: FloatArray,
+        v2: FloatArray,
+        vw: FloatArray,
+        ue1: FloatArray,
+        ue2: FloatArray,
+        uw: FloatArray,
+        aa: FloatArray,
+        t: FloatArray,
+        hit: NDArray[np.bool_],
+        res_r: FloatArray,
+        res_g: FloatArray,
+        dense: bool,
+    ) -> tuple[Linearised, FloatArray | None]:
         q1 = v1 + t * ue1
         q2 = v2 + t * ue2
         h = vw + t * uw
@@ -154,7 +197,7 @@ class LosProblem:
                 full[t.shape[0] + miss] = jg.T
         if full is not None:
             full[: t.shape[0]] = jr.T
-        return Linearised(cost, normal, gradient, e1, e2, residuals), full
+        return Linearised(lin.cost, normal, gradient, lin.e1, lin.e2, lin.residuals), full
 
 
 class OrthogonalProblem:
@@ -179,7 +222,7 @@ class OrthogonalProblem:
         res = (qn - r) * self.isg
         cost = float(res @ res)
         if not jacobian:
-            return Linearised(cost, np.zeros((5, 5)), np.zeros(5), e1, e2, res)
+            return Linearised(cost, np.zeros((5, 5)), np.zeros(5), e1, e2, res, cyl)
         h = v0 * w[0] + v1 * w[1] + v2 * w[2]
         s = -self.isg / np.maximum(qn, 1e-300)
         jac = np.empty((5, res.shape[0]))
@@ -189,6 +232,11 @@ class OrthogonalProblem:
         jac[1] = h * jac[3]
         jac[4] = -self.isg
         return Linearised(cost, jac @ jac.T, jac @ res, e1, e2, res)
+
+    def complete(self, lin: Linearised) -> Linearised:
+        """A cost-only linearisation with its normal matrix and gradient (evaluated again: the
+        orthogonal distances are cheap)."""
+        return lin if not isinstance(lin.state, Cylinder) else self.linearise(lin.state)
 
 
 Problem = LosProblem | OrthogonalProblem
@@ -241,11 +289,11 @@ def levenberg_marquardt(problem: Problem, start: Cylinder, max_iter: int = 100) 
         trial_cost = np.inf
         if new_r > 0:
             new = step(cyl, cur.e1, cur.e2, delta)
-            trial = problem.linearise(new)
+            trial = problem.linearise(new, jacobian=False)  # the Jacobian only if the step is taken
             trial_cost = trial.cost
         stall = stall + 1 if abs(trial_cost - cur.cost) <= FTOL * cur.cost else 0
         if trial_cost < cur.cost:
-            cyl, cur = new, trial
+            cyl, cur = new, problem.complete(trial)
             lam = max(lam * 0.3, 1e-12)
         else:
             lam *= 10.0

@@ -85,7 +85,18 @@ class Cylinder:
         return np.asarray(v - (v @ self.direction)[..., None] * self.direction, dtype=np.float64)
 
     def axis_distance(self, points: ArrayLike) -> FloatArray:
-        return np.asarray(np.linalg.norm(self.radial(points), axis=-1), dtype=np.float64)
+        pts = np.asarray(points, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            return np.asarray(np.linalg.norm(self.radial(pts), axis=-1), dtype=np.float64)
+        # by coordinate, no (N, 3) temporaries (the pipeline measures every point of the cloud
+        # against a candidate several times)
+        a, w = self.point, self.direction
+        x, y, z = pts[:, 0] - a[0], pts[:, 1] - a[1], pts[:, 2] - a[2]
+        h = x * w[0] + y * w[1] + z * w[2]
+        x -= h * w[0]
+        y -= h * w[1]
+        z -= h * w[2]
+        return np.asarray(np.sqrt(x * x + y * y + z * z), dtype=np.float64)
 
     def surface_distance(self, points: ArrayLike) -> FloatArray:
         """Signed orthogonal distance to the surface (positive outside)."""

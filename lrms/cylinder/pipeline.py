@@ -142,11 +142,19 @@ def _refine_from(
     rays: Rays | None,
     opt: DetectOptions,
     multistart: bool = True,
+    use: IntArray | None = None,
 ) -> CylinderFit:
     """Orthogonal polish near ``initial``, then the final fit on the whole cloud's candidates
     (``multistart``: with :func:`_multistart`; skipped when the selection by the scene model
-    refits from this fit anyway)."""
-    band = np.flatnonzero(np.abs(initial.surface_distance(pts)) < 1.5 * opt.threshold)
+    refits from this fit anyway). ``use``: the rows of ``pts`` (and ``rays``) the fit may take
+    (sorted; default all), selected by index so the cloud is not copied; the fit's inliers index
+    ``pts``."""
+    rows = use if use is not None and use.size < pts.shape[0] else None
+
+    def on_use(mask: NDArray[np.bool_]) -> IntArray:
+        return np.flatnonzero(mask) if rows is None else rows[mask[rows]]
+
+    band = on_use(np.abs(initial.surface_distance(pts)) < 1.5 * opt.threshold)
     if band.size < opt.min_inliers:
         raise FitError(f"no cylinder found: only {band.size} points near the best candidate")
     if band.size > 5000:  # a rough start needs no more
@@ -158,12 +166,12 @@ def _refine_from(
     if line_of_sight:
         assert rays is not None
         t, gap = rough.cylinder.ray_range(rays.origins, rays.dirs)
-        cand = np.flatnonzero((np.abs(rays.ranges - t) < 2.0 * opt.threshold) & (gap < 2.0 * opt.threshold))
+        cand = on_use((np.abs(rays.ranges - t) < 2.0 * opt.threshold) & (gap < 2.0 * opt.threshold))
         if cand.size < opt.min_inliers:
             raise FitError(f"no cylinder found: only {cand.size} points on the candidate's lines of sight")
         fit = _los_fit(pts[cand], rays.subset(cand), rough.cylinder, opt, multistart)
     else:
-        cand = np.flatnonzero(np.abs(rough.cylinder.surface_distance(pts)) < 2.0 * opt.threshold)
+        cand = on_use(np.abs(rough.cylinder.surface_distance(pts)) < 2.0 * opt.threshold)
         if cand.size < opt.min_inliers:
             raise FitError(f"no cylinder found: only {cand.size} points near the candidate")
         fit = refine_cylinder(pts[cand], rough.cylinder, sigma=None, max_rounds=4, gate=3.0)
@@ -344,8 +352,7 @@ def fit_cylinder(
             # with a support plane the selection by the scene model below refits with the
             # multi-start; the attempts need the plain fit only
             later = pl is not None and initial is None
-            fit = _refine_from(pts[use], start, line_of_sight, None if rr is None else rr.subset(use), opt, not later)
-            fit = _reindex(fit, use, pts.shape[0])
+            fit = _refine_from(pts, start, line_of_sight, rr, opt, not later, use=use)
         except FitError as exc:
             errors.append(str(exc))
             continue
@@ -375,7 +382,7 @@ def fit_cylinder(
     start, use, later = best_from
     if later and not selected and rr is not None:  # no table under the part, or its refit failed
         with suppress(FitError):  # else keep the plain fit
-            best = _reindex(_refine_from(pts[use], start, True, rr.subset(use), opt), use, pts.shape[0])
+            best = _refine_from(pts, start, True, rr, opt, use=use)
     footprint_won = False
     if rr is not None and optics is not None:
         from lrms.cylinder.footprint import footprint_fit  # scipy.special: only the footprint model needs it

@@ -257,7 +257,8 @@ def refine_cylinder(
 ) -> CylinderFit:
     """Least-squares refinement from ``initial`` with inlier re-selection on ``points``.
 
-    Rounds before the last work on at most ``work_size`` random inliers; the final solve always
+    Rounds before the last work on at most ``work_size`` random inliers (those of the lowest rank
+    in one random order of the points, so consecutive rounds share most of them); the final solve always
     uses every inlier (unless ``final_full`` is false: then the result may come from the subset,
     as a start for further work).
 
@@ -287,7 +288,24 @@ def refine_cylinder(
         return np.asarray(np.abs(c.surface_distance(pts)) / sig, dtype=np.float64)
 
     idx = np.flatnonzero(whitened_all(cyl) < gate) if use_los else np.arange(pts.shape[0])
-    pick = np.random.default_rng(0)
+    # the subsets of the rounds: the ``work_size`` inliers of the lowest rank in one random order
+    # of the points, so a round whose inliers changed little solves on nearly the same subset and
+    # starts next to its optimum (a fresh draw per round moved it by the subset's noise: a full
+    # solve of 20-25 steps each round)
+    rank: list[IntArray] = []
+
+    def subset_of(sel: IntArray) -> IntArray:
+        if not rank:
+            rank.append(np.random.default_rng(0).permutation(pts.shape[0]))
+        r = rank[0][sel]
+        # the ranks below a cut that keeps about ``work_size`` of them (a pass, no partition of
+        # the whole set), then exactly the lowest ``work_size`` of those
+        below = np.flatnonzero(r < int(1.2 * work_size * pts.shape[0] / sel.size) + 1)
+        if below.size < work_size:
+            below = np.argpartition(r, work_size)[:work_size]
+        elif below.size > work_size:
+            below = below[np.argpartition(r[below], work_size)[:work_size]]
+        return np.sort(sel[below])
 
     last: list[tuple[IntArray, LosProblem]] = []  # the last line-of-sight problem and its rows
 
@@ -296,7 +314,7 @@ def refine_cylinder(
             if last and last[0][0] is sel:
                 return last[0][1]
             # ``sel`` is sorted and unique: as many rows as the beams are all of them, in order
-            los = LosProblem(rays if sel.size == rays.ranges.shape[0] else rays.subset(sel))
+            los = LosProblem(rays) if sel.size == rays.ranges.shape[0] else LosProblem.of_rows(rays, sel)
             last[:] = [(sel, los)]
             return los
         return OrthogonalProblem(pts[sel], sig)
@@ -305,7 +323,7 @@ def refine_cylinder(
         if sel.size < 6:
             raise FitError(f"too few inliers left for a cylinder fit ({sel.size})")
         out, _ = levenberg_marquardt(problem(sel), c, max_iter=max_nfev)
-        out = out.with_point_near(pts[sel].mean(axis=0))
+        out = out.with_point_near((pts if sel.size == pts.shape[0] else pts[sel]).mean(axis=0))
         if out.radius <= 0:
             raise FitError("cylinder refinement gave a non-positive radius")
         return out
@@ -315,7 +333,7 @@ def refine_cylinder(
         if idx.size < 6:
             raise FitError(f"too few inliers left for a cylinder fit ({idx.size})")
         partial_solve = idx.size > work_size and (round_ < max_rounds - 1 or not final_full)
-        sel = np.sort(pick.choice(idx, work_size, replace=False)) if partial_solve else idx
+        sel = subset_of(idx) if partial_solve else idx
         cyl = solve_on(sel, cyl)
         if not use_los and sigma is None:
             sig = max(float(np.sqrt(np.mean(np.square(cyl.surface_distance(pts[idx]))))), 1e-9)
@@ -341,8 +359,9 @@ def refine_cylinder(
     scale = 1.0
     if use_los:
         assert rays is not None
-        t, _ = cyl.ray_range(rays.origins[idx], rays.dirs[idx])
-        rmse = float(np.sqrt(np.mean(np.square(rays.ranges[idx] - t))))
+        # the range residuals (l - t) / sigma_l of the linearisation, unwhitened
+        sig_l = np.broadcast_to(np.asarray(rays.sigma_l, dtype=np.float64), rays.ranges.shape)[idx]
+        rmse = float(np.sqrt(np.mean(np.square(lin.residuals[: idx.size] * sig_l))))
     else:
         rmse = float(np.sqrt(np.mean(np.square(cyl.surface_distance(pts[idx])))))
         if sigma is None:
