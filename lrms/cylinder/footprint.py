@@ -12,6 +12,11 @@ beam i is modelled as the echo the model cylinder would return:
   across the beam. Only the lateral coordinate ``xi`` across the cylinder's axis decides whether
   a sub-ray meets the part (``|x0 + xi sigma| < r``, ``x0`` the beam's signed closest approach to
   the axis); the covered share of the spot is ``c = Phi(xi_hi) - Phi(xi_lo)`` in closed form;
+* the energy-weighted family's spot ends at ``BeamOptics.extent`` spot radii (a disc, as the
+  optics' apertures cut a real one): its covered share and nodes follow the lateral marginal of
+  the Gaussian cut to that disc (:func:`disc_marginal_cdf`) instead of ``Phi``; with an endless
+  Gaussian, limb beams read 0.1-0.5 mm short and a noiseless fit came out +2 mm
+  (docs/cylinder.md, section 7, round 5);
 * the covered part of the profile is integrated by Gauss-Legendre nodes placed in probability
   (``xi_k = Phi^-1(Phi(xi_lo) + c u_k)``, weights ``c g_k``): each node a sub-ray cast exactly
   against the model (``_ray_cylinder``), so the integral follows the cylinder's true range
