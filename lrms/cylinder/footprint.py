@@ -473,7 +473,11 @@ def footprint_fit(
 
     Returns a :class:`CylinderFit` whose covariance is that of the chosen family's fit (with the
     threshold's uncertainty for a first-hit fit), scaled by ``max(1, chi2/dof)`` (the range noise of
-    a real receiver exceeds the noise model at weak and inclined echoes), and whose ``extra`` holds
+    a real receiver exceeds the noise model at weak and inclined echoes) and then to the radius's
+    profile where that is wider (first hit: its profile-likelihood interval at k = 2,
+    :func:`_profile_interval`, whose ends ``footprint_profile_lo_m`` / ``footprint_profile_hi_m``
+    and lowest point ``footprint_profile_lowest_m``, diameter offsets, are in ``extra``; energy-weighted:
+    the curvature at +-1 mm, :func:`_profile_variance`), and whose ``extra`` holds
     ``edge_model_u_m`` (the budget row of the spot size, not estimated), ``edge_family_u_m`` (the
     budget row of the model choice, :func:`family_spread`; ``akaike_weight_*`` its weights),
     ``edge_mode_first`` (1 first hit, 0 energy-weighted, -1 the thin beam won), ``edge_threshold``
