@@ -527,7 +527,13 @@ def cylinder_budget(
             1.0,
             "normal",
             "the fit's covariance: range noise of the inlier beams"
-            + (" (sandwich of the grazing-weighted fit)" if fit.extra.get("grazing_sigma_m", 0.0) > 0 else ""),
+            + (" (sandwich of the grazing-weighted fit)" if fit.extra.get("grazing_sigma_m", 0.0) > 0 else "")
+            + (
+                " (footprint fit: scaled to the cost's profile in the radius, wider than J^T J; first hit:"
+                " the profile-likelihood interval's half-width / 2)"
+                if fit.extra.get("footprint_profile_scale", 1.0) > 1.0
+                else ""
+            ),
         )
     ]
     if fit.line_of_sight and rays is not None and beams is not None:

@@ -283,6 +283,12 @@ def _footprint_json(extra: dict[str, float]) -> dict[str, Any]:
         # the fit's diameter u from J^T J and from the cost's profile in the radius (the larger is used)
         "u_jacobian_m": extra.get("footprint_u_jtj_m"),
         "u_profile_m": extra.get("footprint_u_profile_m"),
+        # first hit: the profile-likelihood interval's ends (diameter offsets from the result, m)
+        "profile_interval_m": (
+            [extra["footprint_profile_lo_m"], extra["footprint_profile_hi_m"]]
+            if "footprint_profile_lo_m" in extra
+            else None
+        ),
     }
 
 

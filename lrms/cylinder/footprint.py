@@ -513,7 +513,11 @@ def footprint_fit(
 
     Returns a :class:`CylinderFit` whose covariance is that of the chosen family's fit (with the
     threshold's uncertainty for a first-hit fit), scaled by ``max(1, chi2/dof)`` (the range noise of
-    a real receiver exceeds the noise model at weak and inclined echoes), and whose ``extra`` holds
+    a real receiver exceeds the noise model at weak and inclined echoes) and then to the radius's
+    profile where that is wider (first hit: its profile-likelihood interval at k = 2,
+    :func:`_profile_interval`, whose ends ``footprint_profile_lo_m`` / ``footprint_profile_hi_m``
+    and lowest point ``footprint_profile_lowest_m``, diameter offsets, are in ``extra``; energy-weighted:
+    the curvature at +-1 mm, :func:`_profile_variance`), and whose ``extra`` holds
     ``edge_model_u_m`` (the budget row of the spot size, not estimated), ``edge_family_u_m`` (the
     budget row of the model choice, :func:`family_spread`; ``akaike_weight_*`` its weights),
     ``edge_mode_first`` (1 first hit, 0 energy-weighted, -1 the thin beam won), ``edge_threshold``
@@ -597,9 +601,15 @@ def footprint_fit(
     # flat, rough ridge that the Gauss-Newton curvature J^T J does not see (its u was 4-5x below
     # the spread of noise-only replicas); the variance is taken as the larger of the two, the whole
     # covariance scaled by their ratio (the axis point follows the radius along that ridge; see
-    # docs/cylinder.md section 7)
+    # docs/cylinder.md section 7). First hit: the profile-likelihood interval, its crossing searched
+    # for (rounds 3-5); energy-weighted: the profile's curvature at +-1 mm
     var_jtj = float(cov_full[4, 4])
-    var_prof = _profile_variance(best, frame, optics) * max(1.0, chi2_dof)
+    prof: _Profile | None = None
+    if best.mode == "first":
+        prof = _profile_interval(best, frame, optics, chi2_dof)
+        var_prof = prof.u**2
+    else:
+        var_prof = _profile_variance(best, frame, optics) * max(1.0, chi2_dof)
     prof_scale = max(1.0, var_prof / max(var_jtj, 1e-30))
     cov_full = cov_full * prof_scale
     # sensitivity of the solution to the spot size: d theta / d scale = -(J^T J)^-1 J^T d res / d scale
@@ -628,6 +638,16 @@ def footprint_fit(
             "footprint_u_jtj_m": float(2.0 * np.sqrt(max(var_jtj, 0.0))),
             "footprint_u_profile_m": float(2.0 * np.sqrt(max(var_prof, 0.0))),
             "footprint_profile_scale": float(prof_scale),
+            **(
+                {}
+                if prof is None
+                else {
+                    # the interval's ends and the lowest cost the profile met, as diameter offsets
+                    "footprint_profile_lo_m": 2.0 * prof.lo,
+                    "footprint_profile_hi_m": 2.0 * prof.hi,
+                    "footprint_profile_lowest_m": 2.0 * prof.lowest,
+                }
+            ),
         },
     )
 
@@ -729,45 +749,112 @@ def _aics(solved: list[_Solved], frame: _Frame, work: Rays, optics: BeamOptics, 
 #: Radius step (m) of the cost's profile and the floor of its rise (a flat profile's u stays finite).
 PROFILE_STEP = 1e-3
 PROFILE_FLOOR = 0.05
+#: Radius offsets (m) of the first-hit family's profile search, outward on each side of the
+#: solution; the last is the widest interval half-width it can report.
+PROFILE_SEARCH = (1e-3, 2e-3, 3e-3, 4.5e-3, 6.5e-3, 9e-3, 12e-3)
+#: Coverage factor of the profile-likelihood interval (its crossing: a rise of k^2 x the residual
+#: variance factor); the u reported is the half-width over k.
+PROFILE_K = 2.0
+
+
+def _held(
+    best: _Solved, frame: _Frame, optics: BeamOptics, offset: float, start: FloatArray, max_nfev: int
+) -> tuple[float, FloatArray]:
+    """The cost (chi-square) with the radius held at ``best``'s + ``offset`` and the other
+    parameters refitted from ``start`` (theirs, radius left out); returns it and the parameters."""
+    from scipy.optimize import least_squares  # on first use (see _solve)
+
+    idx = [i for i in range(best.theta.size) if i != 4]
+    full = best.theta.copy()
+    full[4] += offset
+
+    def fun(p: FloatArray) -> FloatArray:
+        t = full.copy()
+        t[idx] = p
+        return _residuals(t, frame, best.rays, optics, best.mode)
+
+    jac: object = "2-point"
+    if best.mode == "first":
+
+        def jac_fn(p: FloatArray) -> FloatArray:
+            t = full.copy()
+            t[idx] = p
+            return _first_jacobian(t, frame, best.rays, optics)[:, idx]
+
+        jac = jac_fn
+    out = least_squares(
+        fun,
+        start,
+        jac=jac,
+        method="trf",
+        x_scale=np.array([1e-3, 1e-3, 1e-3, 1e-3, 0.3][: len(idx)]),
+        diff_step=np.full(len(idx), 1e-5),
+        ftol=_FTOL,
+        max_nfev=max_nfev,
+    )
+    return float(2.0 * out.cost), np.asarray(out.x, dtype=np.float64)
 
 
 def _profile_variance(best: _Solved, frame: _Frame, optics: BeamOptics) -> float:
     """Variance of the radius from the profile of the cost: the other parameters refitted with the
     radius held at ``r +- PROFILE_STEP``; the mean rise ``dC`` of the cost (chi-square) over the
     lowest of the three gives ``var = step^2 / dC`` (a parabola: dC = 1 at one sigma). The rise is
-    floored at ``PROFILE_FLOOR`` (u at most 4.5 steps)."""
-    from scipy.optimize import least_squares  # on first use (see _solve)
-
-    idx = [i for i in range(best.theta.size) if i != 4]
-    costs = []
-    for h in (-PROFILE_STEP, PROFILE_STEP):
-        full = best.theta.copy()
-        full[4] += h
-
-        def fun(p: FloatArray, full: FloatArray = full) -> FloatArray:
-            t = full.copy()
-            t[idx] = p
-            return _residuals(t, frame, best.rays, optics, best.mode)
-
-        jac: object = "2-point"
-        if best.mode == "first":
-
-            def jac_fn(p: FloatArray, full: FloatArray = full) -> FloatArray:
-                t = full.copy()
-                t[idx] = p
-                return _first_jacobian(t, frame, best.rays, optics)[:, idx]
-
-            jac = jac_fn
-        out = least_squares(
-            fun,
-            best.theta[idx],
-            jac=jac,
-            method="trf",
-            x_scale=np.array([1e-3, 1e-3, 1e-3, 1e-3, 0.3][: len(idx)]),
-            diff_step=np.full(len(idx), 1e-5),
-            ftol=_FTOL,
-            max_nfev=4 * len(idx),
-        )
-        costs.append(float(2.0 * out.cost))
+    floored at ``PROFILE_FLOOR`` (u at most 4.5 steps). The energy-weighted family's u."""
+    start = np.delete(best.theta, 4)
+    costs = [_held(best, frame, optics, h, start, 4 * start.size)[0] for h in (-PROFILE_STEP, PROFILE_STEP)]
     rise = 0.5 * (costs[0] + costs[1]) - min(best.cost, *costs)
     return float(PROFILE_STEP**2 / max(rise, PROFILE_FLOOR))
+
+
+@dataclass(frozen=True)
+class _Profile:
+    """The first-hit family's profile-likelihood interval of the radius (offsets from the solution, m)."""
+
+    lo: float  # the interval's lower end (<= 0)
+    hi: float  # its upper end (>= 0)
+    lowest: float  # the offset of the lowest cost the profile met (0: the solution itself)
+    evaluations: int  # held-radius solves
+
+    @property
+    def u(self) -> float:
+        """The radius's standard uncertainty: the interval's larger half-width over ``PROFILE_K``."""
+        return max(-self.lo, self.hi) / PROFILE_K
+
+
+def _profile_interval(best: _Solved, frame: _Frame, optics: BeamOptics, variance_factor: float) -> _Profile:
+    """The profile-likelihood interval of the radius: the radius held at the offsets
+    :data:`PROFILE_SEARCH` outward on each side (each solve started from the last one's parameters:
+    it follows the (radius, tau) ridge), the rest refitted; a side stops at the first offset whose
+    cost rises above the lowest met by more than ``Delta = PROFILE_K^2 x variance_factor`` (the
+    likelihood-ratio interval at k = 2, widened by the residual variance factor ``max(1,
+    chi2/dof)``). Each end is the outermost offset still within ``Delta`` of the lowest cost, carried
+    to the crossing by interpolating ``sqrt(rise)`` (linear in the offset for a parabola); a side
+    that never crosses ends at the last offset searched. On the first hit's flat, rough ridge the
+    cost's curvature at +-1 mm understated the spread of its radius (docs/cylinder.md, section 7,
+    round 5): the crossing is searched for, not extrapolated."""
+    delta = PROFILE_K**2 * max(1.0, variance_factor)
+    start = np.delete(best.theta, 4)
+    pts: dict[float, float] = {0.0: best.cost}
+    floor = best.cost
+    for side in (-1.0, 1.0):
+        p = start
+        for h in PROFILE_SEARCH:
+            cost, p = _held(best, frame, optics, side * h, p, 6 * start.size)
+            pts[side * h] = cost
+            floor = min(floor, cost)
+            if cost - floor > delta:
+                break
+    ends = []
+    for side in (-1.0, 1.0):
+        offs = [0.0, *[side * h for h in PROFILE_SEARCH if side * h in pts]]
+        rise = [max(pts[o] - floor, 0.0) for o in offs]
+        inside = [j for j, r in enumerate(rise) if r <= delta]
+        j = max(inside) if inside else 0
+        if j + 1 < len(offs):  # carried to the crossing with the next (outside) offset
+            sa, sb = np.sqrt(rise[j]), np.sqrt(rise[j + 1])
+            frac = (np.sqrt(delta) - sa) / max(sb - sa, 1e-12)
+            ends.append(offs[j] + float(np.clip(frac, 0.0, 1.0)) * (offs[j + 1] - offs[j]))
+        else:
+            ends.append(offs[j])
+    lowest = min(pts, key=lambda o: pts[o])
+    return _Profile(lo=min(ends[0], 0.0), hi=max(ends[1], 0.0), lowest=lowest, evaluations=len(pts) - 1)

@@ -412,3 +412,29 @@ def test_the_energy_weighted_fit_models_the_spots_end_noiseless() -> None:
     fit = fit_cylinder(pts, rng=np.random.default_rng(0), optics=BeamOptics(), diameter_range=(0.12, 0.16))
     assert fit.extra["edge_mode_first"] == 0.0  # the energy-weighted family
     assert abs(fit.diameter - SEED003_DIAMETER) < 1e-3
+
+
+def test_the_first_hit_u_is_the_profile_likelihood_interval_and_covers_a_flat_valley() -> None:
+    """On a 10 % first-hit cloud the cost in (radius, tau) is a flat valley: with the radius held
+    and tau refitted it rises by about 1 within +-1 mm, then slowly. The curvature at +-1 mm (the
+    u before round 5) gave u = 3.1 mm for an error of +8.4 mm (not covered at k = 2); the
+    profile-likelihood interval, its crossing of Delta = 4 x chi2/dof searched for on each side,
+    reaches 9.6 mm below the fit on the flat side and its larger half-width over k is the fit's u."""
+    pts = footprint_sweep(0.1, "first", 1)
+    fit = fit_cylinder(
+        pts, rng=np.random.default_rng(0), optics=BeamOptics(), diameter_range=nominal_diameter_range(SEED003_DIAMETER)
+    )
+    x = fit.extra
+    assert x["edge_mode_first"] == 1.0
+    lo, hi, lowest = x["footprint_profile_lo_m"], x["footprint_profile_hi_m"], x["footprint_profile_lowest_m"]
+    err = fit.diameter - SEED003_DIAMETER
+    print(f"error {err * 1e3:+.2f} mm, u {fit.std_diameter * 1e3:.2f} mm, interval {lo * 1e3:+.2f}, {hi * 1e3:+.2f}")
+    assert lo < 0.0 < hi and lo <= lowest <= hi
+    # the diameter's u: the interval's larger half-width over k = 2 (or J^T J's, were it wider)
+    assert x["footprint_u_profile_m"] == pytest.approx(max(-lo, hi) / 2.0, rel=1e-9)
+    assert fit.std_diameter == pytest.approx(max(x["footprint_u_jtj_m"], x["footprint_u_profile_m"]), rel=1e-6)
+    # lopsided: the flat side reaches much further than the curvature at +-1 mm said (3.1 mm)
+    assert max(-lo, hi) > 1.4 * min(-lo, hi)  # measured -9.6 / +3.5 mm
+    u = float(np.sqrt(fit.std_diameter**2 + x["edge_model_u_m"] ** 2 + x["edge_family_u_m"] ** 2))
+    assert err > 0.006  # measured +8.4 mm: the truth lies on the flat side
+    assert abs(err) <= 2.0 * u  # measured U = 9.7 mm (6.2 mm before)
