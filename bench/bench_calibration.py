@@ -25,6 +25,10 @@ Artefact layouts (``--layout``; docs/calibration.md, "What limits k1 and the mot
   distances, as a laser tracker or a CMM measures a sphere network), each to ``--u-distance``.
 * ``network-large`` (the default): ``network`` in the ``room-spheres-large`` scene, every sphere
   twice the diameter (0.4 and 0.5 m: four times the beams on each).
+* ``axis``: the ``room-spheres-axis`` scene (five 0.5 m spheres, 10 known distances), each pose
+  looking along its motor shaft at a sphere on that line; its own poses
+  (:data:`sim.scene.library.ROOM_AXIS_POSES`) instead of :data:`POSES`. For k1
+  (docs/calibration.md, "The axis layout").
 
 ``--sweep-deg`` is the motor span, centred on 0 (180: -90..90; 340: -170..170, where most of
 the room is seen twice, from both halves of the 270 deg scan).
@@ -35,7 +39,7 @@ separate unknown pose per sweep (``calibrate(..., poses="separate")``); ``--swee
 each pose.
 
     python -m bench.bench_calibration [--runs 20] [--poses 3] [--speed 20] [--sweeps 1] [--plane-points 5000] [--seed 0]
-        [--layout room|long-bar|network|network-large] [--sweep-deg 340] [--u-distance 3e-5] [--no-part] [--lms1xx]
+        [--layout room|long-bar|network|network-large|axis] [--sweep-deg 340] [--u-distance 3e-5] [--no-part] [--lms1xx]
         [--save runs.json]
     python -m bench.bench_calibration --combine a.json b.json   # the tables over several --save files
 
@@ -80,7 +84,14 @@ from sim.scene import (
     get_scene,
     lms1xx_device_angles,
 )
-from sim.scene.library import ROOM_SPHERE_BAR, ROOM_SPHERES, ROOM_SPHERES_LARGE_FACTOR, room_spheres_artefact
+from sim.scene.library import (
+    ROOM_AXIS_POSES,
+    ROOM_SPHERE_BAR,
+    ROOM_SPHERES,
+    ROOM_SPHERES_LARGE_FACTOR,
+    room_axis_artefact,
+    room_spheres_artefact,
+)
 
 D = np.deg2rad
 
@@ -109,6 +120,8 @@ def layout(name: str, u_distance_m: float) -> tuple[Scene, Artefact]:
     art = room_spheres_artefact()
     if name == "room":
         return get_scene("room-spheres"), Artefact.from_dict(art)
+    if name == "axis":
+        return get_scene("room-spheres-axis"), Artefact.from_dict(room_axis_artefact(u_distance_m))
     scene = get_scene("room-spheres")
     if name == "long-bar":
         a, b, _ = ROOM_SPHERE_BAR
@@ -148,6 +161,8 @@ def _pose(t: tuple[float, float, float], yaw_deg: float, tip_deg: float = 0.0) -
 #: ``--poses``: the rig's poses in the room (world_from_rig), all inside ``room-spheres`` and at
 #: least 1.3 m from every sphere.
 POSES = (np.eye(4), _pose((0.3, 3.0, 0.0), 180.0, 1.0), _pose((1.8, 1.0, 0.3), 90.0))
+#: ``--layout axis``: the poses of ``room-spheres-axis`` (:data:`sim.scene.library.ROOM_AXIS_POSES`).
+AXIS_POSES = tuple(_pose(t, yaw, tip) for t, yaw, tip in ROOM_AXIS_POSES)
 
 
 def calibration_sweep(
@@ -314,7 +329,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sweeps", type=int, default=1, help="calibration sweeps per run (independent noise)")
     ap.add_argument("--plane-points", type=int, default=5000, help="beams used per plane")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--layout", choices=("room", "long-bar", "network", "network-large"), default="network-large")
+    ap.add_argument(
+        "--layout", choices=("room", "long-bar", "network", "network-large", "axis"), default="network-large"
+    )
     ap.add_argument("--sweep-deg", type=float, default=340.0, help="motor span of a sweep, centred on 0")
     ap.add_argument("--u-distance", type=float, default=3e-5, help="u of the long bar's / network's distances, m")
     ap.add_argument("--poses", type=int, default=3, choices=(1, 2, 3), help="rig poses, one sweep set each")
@@ -329,6 +346,7 @@ def main(argv: list[str] | None = None) -> int:
         return combine(args.combine)
     rng = np.random.default_rng(args.seed)
     scene, art = layout(args.layout, args.u_distance)
+    poses = AXIS_POSES if args.layout == "axis" else POSES
     opts = CalibrationOptions(adjust=AdjustOptions(max_plane_points=args.plane_points))
     errs: dict[str, list[float]] = {}
     stds: dict[str, list[float]] = {}
@@ -339,7 +357,7 @@ def main(argv: list[str] | None = None) -> int:
         rig = draw_rig(rng)
         sweeps = [
             calibration_sweep(
-                rig, args.speed, args.seed * 100_000 + 100 * run + 10 * j + k, scene, args.sweep_deg, POSES[j]
+                rig, args.speed, args.seed * 100_000 + 100 * run + 10 * j + k, scene, args.sweep_deg, poses[j]
             )
             for j in range(args.poses)
             for k in range(args.sweeps)

@@ -275,6 +275,56 @@ def room_spheres_large() -> Scene:
     return room_spheres(ROOM_SPHERES_LARGE_FACTOR, "room-spheres-large")
 
 
+#: ``room-spheres-axis`` (docs/calibration.md, "The axis layout"): the ``room-spheres`` room with five
+#: 0.5 m spheres placed for the range scale k1. Each rig pose of :data:`ROOM_AXIS_POSES` looks
+#: along its motor shaft at a sphere straddling that line (every scan plane contains the shaft,
+#: so every scan crosses it: the most beams a sphere can get), with a sphere about 1 m from the
+#: rig beside the line; all 10 centre distances are known. Centres (m) in the first pose's rig frame.
+ROOM_AXIS_SPHERES: tuple[tuple[tuple[float, float, float], float], ...] = (
+    ((0.0, 4.8, 0.0), 0.5),  # far on the first pose's shaft (4.8 m)
+    ((0.45, 1.0, 0.035), 0.5),  # 1.1 m beside the first pose's shaft; straddles the second's (2 m)
+    ((-1.5, 0.2, 0.3), 0.5),  # far on the third pose's shaft (3.3 m)
+    ((-0.4, 2.4, 0.35), 0.5),  # 1 m from the second pose
+    ((1.0, -0.3, -0.3), 0.5),  # 1.1 m from the first and the third pose
+)
+#: The rig poses of ``room-spheres-axis``: (position m, turn about z deg, tip about x deg) of the
+#: rig frame in the first pose's frame: the origin looking along +y; 3 m along +y turned to look
+#: back (-y), tipped 1 deg; at (1.8, 0.2, 0.3) looking along -x.
+ROOM_AXIS_POSES: tuple[tuple[tuple[float, float, float], float, float], ...] = (
+    ((0.0, 0.0, 0.0), 0.0, 0.0),
+    ((0.3, 3.0, 0.0), 180.0, 1.0),
+    ((1.8, 0.2, 0.3), 90.0, 0.0),
+)
+
+
+def room_axis_artefact(u_distance_m: float = 3e-5) -> dict[str, object]:
+    """``room-spheres-axis``'s artefact: the five 0.5 m spheres and all 10 centre distances (each
+    with standard uncertainty ``u_distance_m``, as a laser tracker or CMM measures the network)."""
+    c = [np.asarray(x, dtype=np.float64) for x, _ in ROOM_AXIS_SPHERES]
+    n = len(c)
+    return {
+        "planes": True,
+        "spheres": [{"diameter_m": d} for _, d in ROOM_AXIS_SPHERES],
+        "distances_m": [
+            {"a": i, "b": j, "distance_m": float(np.linalg.norm(c[j] - c[i])), "u_distance_m": u_distance_m}
+            for i in range(n)
+            for j in range(i + 1, n)
+        ],
+    }
+
+
+def room_spheres_axis() -> Scene:
+    """The ``room-spheres`` room with the spheres of :data:`ROOM_AXIS_SPHERES`."""
+    scene = room_spheres(1.0, "room-spheres-axis")
+    room = Scene("room-spheres-axis")
+    for o in scene.objects:
+        if not o.name.startswith("sphere"):
+            room.add(o.shape, o.remission, o.name)
+    for i, (centre, diameter) in enumerate(ROOM_AXIS_SPHERES):
+        room.add(Sphere(centre, diameter / 2), remission=0.8, name=f"sphere{i}")
+    return room
+
+
 register_scene("seed003", seed003, "seed 003: 137.5 mm cylinder on a table 2.53 m along +y, floor, wall, clutter")
 register_scene(
     "seed003-room",
@@ -287,5 +337,10 @@ register_scene("wall", wall, "an infinite wall at y = 3 m")
 register_scene("room-spheres", room_spheres, "calibration room: 6 planes, 7 reference spheres (a 2 m sphere bar)")
 register_scene(
     "room-spheres-large", room_spheres_large, "calibration room: 6 planes, 7 reference spheres of 0.4 / 0.5 m"
+)
+register_scene(
+    "room-spheres-axis",
+    room_spheres_axis,
+    "calibration room for k1: 5 spheres of 0.5 m on and beside the shaft lines",
 )
 register_scene("elbow", elbow, "a 90 deg pipe elbow, D 250 mm, A 350 mm, 1.8 m ahead; floor")
