@@ -438,3 +438,23 @@ def test_the_first_hit_u_is_the_profile_likelihood_interval_and_covers_a_flat_va
     u = float(np.sqrt(fit.std_diameter**2 + x["edge_model_u_m"] ** 2 + x["edge_family_u_m"] ** 2))
     assert err > 0.006  # measured +8.4 mm: the truth lies on the flat side
     assert abs(err) <= 2.0 * u  # measured U = 9.7 mm (6.2 mm before)
+
+
+def test_the_energy_weighted_echo_stays_continuous_where_the_spot_leaves_the_part() -> None:
+    """A beam whose cut spot no longer meets the part (covered share exactly 0 beyond extent
+    radii) keeps the range of its spot's edge: the expected echo does not jump to 0 m there (a
+    200-sigma cliff in the residuals for the solver's finite differences)."""
+    a, w, r = np.array([0.0, 2.5, 0.0]), np.array([0.0, 0.0, 1.0]), 0.06875
+    optics = BeamOptics()
+    sig = optics.sigma(2.5)
+    beyond = np.array([2.9, 2.99, 3.01, 3.5, 5.0])  # spot sigmas past the limb; the disc ends at 3
+    x0 = r + sig * beyond
+    n = x0.size
+    rays = Rays(
+        np.stack([x0, np.zeros(n), np.zeros(n)], 1), np.tile([0.0, 1.0, 0.0], (n, 1)),
+        np.full(n, 2.43), np.full(n, 0.012), np.full(n, 1e-3),
+    )  # fmt: skip
+    t, c = expected_echo(a, w, r, rays, optics, "weighted")
+    assert c[0] > 0 and np.all(c[2:] == 0.0)  # the cut spot: nothing of it on the part past 3 sigma
+    np.testing.assert_allclose(t, 2.5, atol=0.01)  # every range near the limb's, none at 0 m
+    assert abs(t[2] - t[1]) < 0.005  # no jump across the disc's edge
