@@ -258,8 +258,9 @@ def _pykdtree() -> Any:
     * Setting or changing ``OMP_NUM_THREADS`` after the first fit has no effect.
 
     The CLI commands ``lrms serve``, ``measure``, ``replay`` and ``reprocess`` (and their worker
-    processes) ``setdefault`` ``OMP_NUM_THREADS=1`` at start, before anything is imported, so
-    there the variable is already set and this function leaves the environment alone.
+    processes) ``setdefault`` ``OMP_NUM_THREADS=1`` at the start of their run, before the fit
+    modules are imported, so there the variable is already set and this function leaves the
+    environment alone (unless it was exported empty: ``setdefault`` keeps that).
     """
     with _PYKDTREE_LOCK:
         if not _pykdtree_class:
