@@ -229,6 +229,7 @@ def rays_from_points(points: ArrayLike, p: float = kinematics.DEFAULT_P, noise: 
 #: Which k-d tree :func:`estimate_normals` searches with: ``"auto"`` is pykdtree when it is
 #: installed, else scipy's ``cKDTree``; both return the exact k nearest neighbours.
 KnnBackend = Literal["auto", "pykdtree", "scipy"]
+_KNN_BACKENDS: tuple[str, ...] = ("auto", "pykdtree", "scipy")
 
 _PYKDTREE_LOCK = threading.Lock()
 _pykdtree_class: list[Any] = []  # [KDTree or None] once the import was tried
@@ -238,16 +239,33 @@ def _pykdtree() -> Any:
     """pykdtree's ``KDTree``, imported on first use (about 1 ms, against 0.3 s for
     :mod:`scipy.spatial`); ``None`` when it is not installed.
 
-    pykdtree parallelises its queries with OpenMP, by default on every core. Unless
-    ``OMP_NUM_THREADS`` is set, the import runs with ``OMP_NUM_THREADS=1`` (its bundled OpenMP
-    runtime reads the variable once, when it is loaded; the variable is removed again at once),
-    so its queries run on the calling thread alone like scipy's: the fits already run one per
-    core in the service and the reprocessing workers. ``OMP_NUM_THREADS=N`` before the first
-    fit asks for N threads.
+    pykdtree parallelises its queries with OpenMP, by default on every core. The pykdtree wheel
+    bundles its own libgomp, which reads ``OMP_NUM_THREADS`` once, when it is loaded. So unless
+    the variable holds a value (an empty ``OMP_NUM_THREADS=""`` counts as unset: libgomp would
+    use every core), the import runs with ``OMP_NUM_THREADS=1`` and the variable is put back as
+    it was right after; pykdtree's queries then run on the calling thread alone, like scipy's
+    (the fits already run one per core in the service and the reprocessing workers).
+    ``OMP_NUM_THREADS=N`` before the first fit asks for N threads.
+
+    Limits, plainly: the pin lasts only for the import, and only the first import counts.
+
+    * It writes ``os.environ`` of the whole process for that moment; another thread that reads
+      the environment or loads an OpenMP runtime (or forks) just then sees ``1``. The lock
+      below serialises only the callers of this function.
+    * An OpenMP runtime shared with pykdtree (a libgomp loaded before, e.g. by a build of
+      pykdtree linked against the system's) has already read the variable: the pin does nothing
+      then and the queries take its thread count.
+    * Setting or changing ``OMP_NUM_THREADS`` after the first fit has no effect.
+
+    The CLI commands ``lrms serve``, ``measure``, ``replay`` and ``reprocess`` (and their worker
+    processes) ``setdefault`` ``OMP_NUM_THREADS=1`` at the start of their run, before the fit
+    modules are imported, so there the variable is already set and this function leaves the
+    environment alone (unless it was exported empty: ``setdefault`` keeps that).
     """
     with _PYKDTREE_LOCK:
         if not _pykdtree_class:
-            pinned = "OMP_NUM_THREADS" not in os.environ
+            before = os.environ.get("OMP_NUM_THREADS")
+            pinned = not (before or "").strip()
             if pinned:
                 os.environ["OMP_NUM_THREADS"] = "1"
             try:
@@ -258,38 +276,71 @@ def _pykdtree() -> Any:
                 _pykdtree_class.append(None)
             finally:
                 if pinned:
-                    os.environ.pop("OMP_NUM_THREADS", None)
+                    if before is None:
+                        os.environ.pop("OMP_NUM_THREADS", None)
+                    else:
+                        os.environ["OMP_NUM_THREADS"] = before
         return _pykdtree_class[0]
 
 
-def knn_query(points: FloatArray, backend: KnnBackend = "auto") -> Callable[[FloatArray, int], NDArray[np.integer]]:
-    """A k-d tree over ``points`` (``(n, 3)`` float64) as ``query(q, k)`` -> the indices ``(m, k)``
-    of each query point's ``k`` nearest points, nearest first (``k >= 2``, ``k <= n``).
+def _finite_rows(a: FloatArray, what: str, dims: int | None = None) -> None:
+    """Raise :class:`FitError` unless ``a`` is ``(n, dims)`` and finite."""
+    if a.ndim != 2 or (dims is not None and a.shape[1] != dims):
+        want = f"(n, {dims})" if dims is not None else "(n, d)"
+        raise FitError(f"{what} must be a {want} array, got shape {a.shape}")
+    if not np.isfinite(a).all():
+        bad = int(np.count_nonzero(~np.isfinite(a).all(axis=1)))
+        raise FitError(f"{what} must be finite: {bad} of {a.shape[0]} rows hold NaN or inf")
+
+
+def knn_query(points: ArrayLike, backend: KnnBackend = "auto") -> Callable[[ArrayLike, int], IntArray]:
+    """A k-d tree over ``points`` (``(n, d)``, searched in float64) as ``query(q, k)`` -> the
+    indices ``(m, k)`` (``intp``) of each query point's ``k`` nearest points, nearest first.
 
     ``backend="auto"`` takes pykdtree when installed, else scipy's ``cKDTree`` (imported on first
     use). Both are exact and, for distinct distances, return the same indices in the same
     order; where several points lie at exactly the same distance (duplicates, lattices) each
     may pick a different one of them, as either might on another build.
+
+    Raises :class:`~lrms.errors.FitError` for an unknown ``backend``, points or query points
+    that are not finite or not ``(n, d)`` / ``(m, d)``, and ``k`` outside ``2 <= k <= n`` (the
+    backends would otherwise give a 1-D result for ``k = 1`` and, for ``k > n``, pad with an
+    out-of-range index: ``n`` from cKDTree, 2**32 - 1 from pykdtree); ``ModuleNotFoundError``
+    for ``backend="pykdtree"`` when pykdtree is not installed.
     """
+    if backend not in _KNN_BACKENDS:
+        raise FitError(f"unknown k-nearest-neighbour backend {backend!r}; expected one of {_KNN_BACKENDS}")
     pts = np.ascontiguousarray(points, dtype=np.float64)
+    _finite_rows(pts, "k-d tree points")
+    n, dims = pts.shape
+
+    def checked(q: ArrayLike, k: int) -> tuple[FloatArray, int]:
+        qq = np.ascontiguousarray(q, dtype=np.float64)
+        _finite_rows(qq, "query points", dims)
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 2 <= k <= n:
+            raise FitError(f"k must be an integer with 2 <= k <= n = {n} (points in the tree), got {k!r}")
+        return qq, int(k)
+
     kd = _pykdtree() if backend != "scipy" else None
     if backend == "pykdtree" and kd is None:
         raise ModuleNotFoundError("the pykdtree k-nearest-neighbour backend is not installed (pip install pykdtree)")
     if kd is not None:
         tree = kd(pts, leafsize=16)
 
-        def query(q: FloatArray, k: int) -> NDArray[np.integer]:
-            _, idx = tree.query(np.ascontiguousarray(q, dtype=np.float64), k=k)
-            return np.asarray(idx)
+        def query(q: ArrayLike, k: int) -> IntArray:
+            qq, kk = checked(q, k)
+            _, idx = tree.query(qq, k=kk)
+            return np.asarray(idx, dtype=np.intp).reshape(qq.shape[0], kk)
 
         return query
     from scipy.spatial import cKDTree  # 0.3 s of imports: only without pykdtree
 
     ctree = cKDTree(pts, leafsize=16)
 
-    def cquery(q: FloatArray, k: int) -> NDArray[np.integer]:
-        _, idx = ctree.query(q, k=k)
-        return np.asarray(idx)
+    def cquery(q: ArrayLike, k: int) -> IntArray:
+        qq, kk = checked(q, k)
+        _, idx = ctree.query(qq, k=kk)
+        return np.asarray(idx, dtype=np.intp).reshape(qq.shape[0], kk)
 
     return cquery
 
@@ -298,8 +349,11 @@ def estimate_normals(
     points: ArrayLike, k: int = 24, chunk: int = 50_000, *, backend: KnnBackend = "auto"
 ) -> FloatArray:
     """Unit normals by PCA of each point's ``k`` nearest neighbours (smallest-eigenvalue axis);
-    the neighbours from :func:`knn_query` (``backend``)."""
+    the neighbours from :func:`knn_query` (``backend``). ``k`` is clamped to ``3 <= k <= n``.
+    Raises :class:`~lrms.errors.FitError` for fewer than 3 points, points that are not a finite
+    ``(n, 3)`` array, or an unknown ``backend``."""
     pts = np.asarray(points, dtype=np.float64)
+    _finite_rows(pts, "points for normals", 3)
     n = pts.shape[0]
     if n < 3:
         raise FitError(f"need at least 3 points for normals, got {n}")
