@@ -120,7 +120,8 @@ def run_remote(args: argparse.Namespace) -> int:
             time.sleep(POLL_S if deadline is None else max(0.0, min(POLL_S, deadline - time.monotonic())))
             m = _checked(client.json("GET", path), client, f"GET {path}")
     except KeyboardInterrupt:
-        _cancel(client, path, mid)  # leave no orphan sweep on the rig
+        if m["state"] not in FINAL:
+            _cancel(client, path, mid)  # leave no orphan sweep on the rig
         raise
     if not args.quiet:
         print(file=sys.stderr)
