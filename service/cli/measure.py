@@ -33,11 +33,22 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "(default: $LRMS_OPERATOR_TOKEN, $LRMS_ADMIN_TOKEN, $LRMS_API_TOKEN, the first one set)",
     )
     parser.add_argument(
-        "--timeout", type=float, default=30.0, help="with --server: seconds to wait for each answer (default 30)"
+        "--timeout",
+        type=float,
+        metavar="SECONDS",
+        help="with --server: seconds to wait for each answer of the service (default 30)",
+    )
+    parser.add_argument(
+        "--wait",
+        type=float,
+        metavar="SECONDS",
+        help="with --server: give up after this many seconds from the request (the measurement is "
+        "then cancelled on the service and the command fails; default: wait until it ends)",
     )
 
 
-def _bar(fraction: float, message: str, width: int = 30) -> str:
+def progress_bar(fraction: float, message: str, width: int = 30) -> str:
+    """The one-line progress bar (``\\r`` first: it overwrites itself on stderr)."""
     n = round(max(0.0, min(1.0, fraction)) * width)
     return f"\r[{'#' * n}{'.' * (width - n)}] {fraction * 100:5.1f}% {message[:50]:<50}"
 
@@ -65,6 +76,13 @@ def run(args: argparse.Namespace) -> int:
         from service.cli.measure_remote import run_remote
 
         return run_remote(args)
+    from service.cli.measure_remote import REMOTE_ONLY
+
+    given = [flag for attr, flag in REMOTE_ONLY if getattr(args, attr, None) is not None]
+    if given:
+        from service.errors import ServiceError
+
+        raise ServiceError(f"only with --server: {', '.join(given)} (the embedded rig needs no token or time limit)")
     import os
 
     # one BLAS thread: the fits are then bit-for-bit repeatable (lrms replay), and the rig's
@@ -101,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
             if latest is not None and not args.quiet:
                 ev = latest[1]
                 print(
-                    _bar(float(ev.get("progress") or 0.0), str(ev.get("message") or ev["state"])),
+                    progress_bar(float(ev.get("progress") or 0.0), str(ev.get("message") or ev["state"])),
                     end="",
                     file=sys.stderr,
                     flush=True,

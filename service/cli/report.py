@@ -1,9 +1,9 @@
-"""``lrms report ID``: a measurement's report (HTML, or PDF with ``--pdf``) from a running service."""
+"""``lrms report ID``: a measurement's report (HTML, or PDF with ``--pdf``) from a running service
+(the standard-library client :mod:`service.cli._http`, shared with ``lrms measure --server``)."""
 
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 
 HELP = "fetch a measurement's report (HTML or PDF) from the service"
@@ -26,31 +26,16 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import httpx
-
-    from service.errors import ServiceError
+    from service.cli._http import ApiClient, token_from
 
     kind = "pdf" if args.pdf else "html"
-    token = args.token or next((os.environ[v] for v in TOKEN_VARS if os.environ.get(v)), None)
-    headers = {"Authorization": f"Bearer {token}"} if token else {}
-    url = f"{args.url.rstrip('/')}/api/v1/measurements/{args.id}/report.{kind}"
-    try:
-        r = httpx.get(url, headers=headers, timeout=args.timeout)
-    except httpx.HTTPError as exc:
-        raise ServiceError(f"cannot reach the service at {args.url}: {exc}") from None
-    if r.status_code != 200:
-        try:
-            body = r.json()
-            detail = body.get("message") or body.get("detail")
-        except ValueError:
-            detail = r.text[:200]
-        raise ServiceError(f"the service answered {r.status_code}: {detail}")
+    client = ApiClient(args.url, token_from(args.token, TOKEN_VARS), args.timeout)
+    path = f"/api/v1/measurements/{args.id}/report.{kind}"
     out = args.out or f"report-{args.id}.{kind}"
     if out == "-":
-        sys.stdout.buffer.write(r.content)
+        sys.stdout.buffer.write(client.read(path))
         sys.stdout.buffer.flush()
     else:
-        with open(out, "wb") as f:
-            f.write(r.content)
+        client.download(path, out)
         print(out)
     return 0

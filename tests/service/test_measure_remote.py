@@ -5,12 +5,16 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
+from typing import ClassVar
 
 import httpx
 import pytest
@@ -145,3 +149,138 @@ def test_ctrl_c_cancels_the_measurement_on_the_service(server: str) -> None:
         assert time.monotonic() < end, "the cancelled measurement still runs"
         time.sleep(0.2)
     assert state == "cancelled", state
+
+
+def test_wait_gives_up_cancels_and_fails(server: str) -> None:
+    """``--wait`` bounds the whole wait: past it the command says so, cancels the measurement on
+    the service and exits 1."""
+    cmd = ["--server", server, "--target", "cylinder", "--speed", "5", "--quiet", "--wait", "1.5"]
+    p = _measure(cmd, _env(LRMS_OPERATOR_TOKEN=TOKEN))
+    assert p.returncode == 1 and "did not end within --wait 1.5 s" in p.stderr, p.stderr
+    assert "cancelled on the service" in p.stderr and p.stderr.count("\n") == 1, p.stderr
+    found = re.search(r"measurement (\w+) did not end", p.stderr)
+    assert found is not None, p.stderr
+    end = time.monotonic() + 60
+    url = f"{server}/api/v1/measurements/{found.group(1)}"
+    while (state := httpx.get(url, timeout=10).json()["state"]) in ("queued", "running"):
+        assert time.monotonic() < end, "the measurement past --wait still runs"
+        time.sleep(0.2)
+    assert state == "cancelled", state
+
+
+def test_client_only_options_are_refused_without_server() -> None:
+    for extra, named in (
+        (["--token", TOKEN], "--token"),
+        (["--timeout", "5", "--wait", "3"], "--timeout, --wait"),
+    ):
+        p = _measure(["--target", "cylinder", "--quiet", *extra], _env())
+        assert p.returncode == 1 and f"error: only with --server: {named}" in p.stderr, p.stderr
+        assert p.stderr.count("\n") == 1, p.stderr
+
+
+class _FakeService(BaseHTTPRequestHandler):
+    """Not an lrms service: each test sets ``mode`` and reads ``seen`` (the requests' lines)."""
+
+    mode = ""
+    seen: ClassVar[list[str]] = []
+    posted = threading.Event()
+
+    def log_message(self, format: str, *args: object) -> None:  # quiet
+        pass
+
+    def _send(self, body: bytes, ctype: str = "application/json", length: int | None = None) -> None:
+        self.send_response(200)
+        self.send_header("Content-Type", ctype)
+        self.send_header("Content-Length", str(len(body) if length is None else length))
+        self.end_headers()
+        self.wfile.write(body)
+        self.wfile.flush()
+
+    def do_POST(self) -> None:
+        self.seen.append(f"POST {self.path}")
+        self.rfile.read(int(self.headers.get("Content-Length") or 0))
+        if self.path.endswith("/cancel"):
+            self._send(json.dumps({"id": "m7", "state": "cancelled"}).encode())
+        elif self.mode == "html":
+            self._send(b"<html><body>a proxy's login page</body></html>", "text/html")
+        elif self.mode == "cut":
+            done = {"id": "m7", "state": "done", "has_raw": True, "has_cloud": False, "result": {"model": "x"}}
+            self._send(json.dumps(done).encode())
+        elif self.mode == "slow":
+            type(self).posted.set()
+            time.sleep(1.5)
+            self._send(json.dumps({"id": "m7", "state": "queued"}).encode())
+
+    def do_GET(self) -> None:
+        self.seen.append(f"GET {self.path}")
+        if self.path.endswith("/raw"):  # a tenth of the promised body, then silence
+            self._send(b"\x89MCAP0\r\n" * 100, "application/octet-stream", length=9000)
+            time.sleep(3)
+        else:
+            self._send(json.dumps({"id": "m7", "state": "running", "progress": 0.1}).encode())
+
+
+@pytest.fixture()
+def fake() -> Iterator[tuple[str, type[_FakeService]]]:
+    _FakeService.seen = []
+    _FakeService.posted = threading.Event()
+    httpd = ThreadingHTTPServer(("127.0.0.1", 0), _FakeService)
+    httpd.daemon_threads = True
+    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{httpd.server_address[1]}", _FakeService
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
+
+
+def test_a_reply_that_is_not_the_api_is_a_one_line_error(fake: tuple[str, type[_FakeService]]) -> None:
+    url, svc = fake
+    svc.mode = "html"
+    p = _measure(["--server", url, "--target", "cylinder", "--quiet", "--token", TOKEN], _env())
+    assert p.returncode == 1 and p.stderr.count("\n") == 1, p.stderr
+    assert f"error: the reply to POST /api/v1/measurements from {url} is not an lrms API answer" in p.stderr
+
+
+def test_a_download_cut_short_leaves_the_out_file_as_it_was(
+    fake: tuple[str, type[_FakeService]], tmp_path: Path
+) -> None:
+    """The raw log stops after 900 of 9,000 bytes: the read times out (``--timeout 0.5``), the
+    command fails on one line, and ``--out`` keeps its old content (no half-written file, no
+    temporary file left beside it)."""
+    url, svc = fake
+    svc.mode = "cut"
+    out = tmp_path / "run.mcap"
+    out.write_bytes(b"an older run")
+    argv = ["--server", url, "--target", "cylinder", "--quiet", "--token", TOKEN, "--timeout", "0.5"]
+    p = _measure([*argv, "--out", str(out)], _env())
+    assert p.returncode == 1 and p.stderr.count("\n") == 1, p.stderr
+    assert "the reply to GET /api/v1/measurements/m7/raw" in p.stderr and "not an lrms API answer" in p.stderr
+    assert out.read_bytes() == b"an older run"
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["run.mcap"]
+
+
+def test_ctrl_c_during_the_request_cancels_once_the_id_is_known(fake: tuple[str, type[_FakeService]]) -> None:
+    """Ctrl-C while the POST waits for its answer: the command holds it, takes the answered id,
+    cancels that measurement and exits 130."""
+    url, svc = fake
+    svc.mode = "slow"
+    proc = subprocess.Popen(
+        [*LRMS, "measure", "--server", url, "--target", "cylinder", "--quiet", "--token", TOKEN],
+        cwd=REPO,
+        env=_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert svc.posted.wait(60), proc.communicate()
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 130 and "interrupted" in err, err
+    assert svc.seen == ["POST /api/v1/measurements", "POST /api/v1/measurements/m7/cancel"], svc.seen
