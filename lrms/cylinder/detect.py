@@ -283,6 +283,12 @@ def _cell_components(cells: NDArray[np.int64]) -> IntArray:
     return np.asarray(comp[of_point.ravel()], dtype=np.intp)
 
 
+#: Rows of the working sample on which each background plane RANSAC scores its hypotheses.
+PLANE_SCORE_SIZE = 1000
+#: Rows of the RANSAC's sample on which the cylinder RANSAC scores its hypotheses (None: all).
+CYLINDER_SCORE_SIZE: int | None = 1000
+
+
 def background_planes(
     points: ArrayLike, options: DetectOptions | None = None, rng: np.random.Generator | None = None
 ) -> Background:
@@ -310,7 +316,15 @@ def background_planes(
             break
         try:
             model, mask = ransac(
-                data[rows], _Plane, 3, opt.threshold, max_trials=500, min_trials=100, rng=g, score_size=2000, batch=50
+                data[rows],
+                _Plane,
+                3,
+                opt.threshold,
+                max_trials=500,
+                min_trials=100,
+                rng=g,
+                score_size=PLANE_SCORE_SIZE,
+                batch=50,
             )
         except FitError:
             break
@@ -429,6 +443,7 @@ def detect_cylinder(
         min_inliers=min_inl,
         refine=False,
         rng=g,
+        score_size=CYLINDER_SCORE_SIZE,
         batch=50,
     )
     assert model.cylinder is not None

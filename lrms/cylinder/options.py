@@ -27,7 +27,7 @@ class DetectOptions:
     candidate's range in the detection stages.
     """
 
-    sample_size: int = 3000
+    sample_size: int = 2000
     normal_k: int = 32
     threshold: float = 0.03
     normal_weight: float = 0.02
@@ -45,5 +45,5 @@ class DetectOptions:
     max_planes: int = 6
     wall_min_share: float = 0.03
     wall_min_extent: float = 0.5
-    wall_sample: int = 5_000
+    wall_sample: int = 3_000
     spot: tuple[float, float] = (0.0, 0.0)
