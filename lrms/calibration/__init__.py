@@ -217,6 +217,7 @@ def calibrate(
             "exit_diameter_m": opts.optics.exit_diameter_m,
             "divergence_rad": opts.optics.divergence_rad,
             "profile_sigma": opts.optics.profile_sigma,
+            "extent": opts.optics.extent,
             "assumed_scale": spot_scale,
         },
         censored=dict(adj.censored) if opts.optics is not None else None,
@@ -245,7 +246,7 @@ def _spot_scale(
         org, d = adj._world(adj.state, np.arange(len(o)), *m.rays(o.alpha, o.beta, o.omega))
         return estimate_spot_scale(
             org, d, m.geometric_range(o.l), spheres, optics.exit_diameter_m, optics.divergence_rad,
-            optics.profile_sigma, adj.noise.sigma_l,
+            optics.profile_sigma, adj.noise.sigma_l, optics.extent,
         )  # fmt: skip
 
     base = model.vector()

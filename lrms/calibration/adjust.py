@@ -100,7 +100,10 @@ MIN_COS = 0.3
 #: A surface needs this many usable beams to stay in the adjustment.
 MIN_SURFACE_BEAMS = 30
 #: With a finite spot: a beam is censored when its spot, out to this many spot sigmas, is not wholly
-#: on its own surface (the simulated LMS1xx's sub-rays reach 1.5 spot radii = 3 sigma).
+#: on its own surface (the simulated LMS1xx's sub-rays reach 1.5 spot radii = 3 sigma). The kept
+#: sphere beams' echo is the spot's light cut to this disc too (``limb_echo``'s ``extent_sigmas``:
+#: ``BeamOptics.extent`` 1.5 at ``profile_sigma`` 0.25; the adjustment is not given the optics'
+#: own extent yet, docs/calibration.md).
 CENSOR_SIGMA = 3.0
 
 
@@ -573,7 +576,7 @@ class Adjustment:
             self.censored[f"sphere {sp.artefact_index}"] = int(bad.sum())
             sp.index = sp.index[~bad]
             t_ca = (t + depth)[~bad]
-            echo, _ = limb_echo(x0[~bad], t_ca, np.full(t_ca.size, sp.radius), s0 + sd * t_ca)
+            echo, _ = limb_echo(x0[~bad], t_ca, np.full(t_ca.size, sp.radius), s0 + sd * t_ca, k)
             self._bias[sp.index] = echo - (t_ca - depth[~bad])
 
     def _drop_thin(self) -> None:

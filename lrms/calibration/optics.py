@@ -11,18 +11,27 @@ squares, the range noise ``sigma_l``), with its standard uncertainty from the cu
 sum of squares (scaled by the variance factor when it exceeds 1).
 
 The expected echo of a beam at closest approach ``x0`` from the centre, ``t_ca`` along the beam:
-the spot is a Gaussian of standard deviation ``sigma = s profile_sigma (exit + divergence t_ca)``;
-across the radial direction (``y``) by Gauss-Hermite nodes, at each ``y`` the covered radial
-interval ``|x| < sqrt(r^2 - y^2)`` integrated by Gauss-Legendre nodes placed in probability (as
-:func:`lrms.cylinder.footprint.expected_echo` does for a cylinder: a sphere's limb is locally a
-cylinder tangent to it, here with the curvature along the limb kept), each sub-ray meeting the
-sphere at ``t_ca - sqrt(r^2 - x^2 - y^2)`` with energy ``~ cos(incidence) / t^2``. This is the
+the spot is a Gaussian of standard deviation ``sigma = s profile_sigma (exit + divergence t_ca)``
+whose light ends at ``BeamOptics.extent`` spot radii (a disc of ``R = extent / (2 profile_sigma)``
+sigmas: 3 for the LMS1xx defaults, as the footprint fit's energy-weighted family and the simulator
+model it). The limb is two-dimensional (the spot meets a sphere, not a cylinder): the coordinate
+along the limb (``y``) is drawn from the disc's lateral marginal (Gauss-Legendre nodes placed in
+its probability, :func:`lrms.cylinder.footprint.disc_marginal_ppf`), and given ``y`` the radial
+one (``x``) is the Gaussian cut to the disc's chord ``|x| <= sqrt(R^2 - y^2)`` sigmas; the covered
+radial interval, that chord intersected with ``|x| < sqrt(r^2 - y^2)``, is integrated by
+Gauss-Legendre nodes placed in probability (as :func:`lrms.cylinder.footprint.expected_echo` does
+for a cylinder, here with the curvature along the limb kept), each sub-ray meeting the sphere at
+``t_ca - sqrt(r^2 - x^2 - y^2)`` with energy ``~ cos(incidence) / t^2``. This is the
 "energy-weighted" edge family (the simulator's default and the footprint fit's "weighted" mode);
-the sub-rays' divergence across the spot is left out (a path difference below 0.1 mm).
+the sub-rays' divergence across the spot is left out (a path difference below 0.1 mm). With
+``extent`` infinite the endless Gaussian (Gauss-Hermite nodes along the limb), as calibrations
+before the disc cut were estimated: on a noiseless simulated sweep it read the scale 1.7 % lower
+than the disc (docs/calibration.md).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -30,6 +39,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import optimize
 from scipy.special import ndtr, ndtri
+
+from lrms.cylinder.footprint import disc_marginal_ppf
 
 FloatArray = NDArray[np.float64]
 
@@ -42,7 +53,8 @@ _GH_W = _GH_W / np.sqrt(2.0 * np.pi)
 SCALE_BOUNDS = (0.05, 6.0)
 #: Relative standard uncertainty of the limb-echo model itself, added to the fit's: on a simulated
 #: LMS1xx (32 sub-rays, energy-weighted echoes) with the true spot, 3382 limb beams gave
-#: s = 0.949 +- 0.017 (fit alone); this term covers that.
+#: s = 0.949 +- 0.017 (fit alone, endless Gaussian); this term covers that. With the disc cut, a
+#: noiseless sweep of 128 sub-rays still reads 2.0-2.6 % low (docs/calibration.md).
 MODEL_U = 0.03
 #: Fewer limb beams than this: the spot scale is not estimated.
 MIN_LIMB_BEAMS = 30
@@ -63,23 +75,38 @@ class SpotScale:
 
 
 def limb_echo(
-    x0: FloatArray, t_ca: FloatArray, radius: FloatArray, spot_sigma: FloatArray
+    x0: FloatArray, t_ca: FloatArray, radius: FloatArray, spot_sigma: FloatArray, extent_sigmas: float = math.inf
 ) -> tuple[FloatArray, FloatArray]:
     """Energy-weighted echo range of beams passing ``x0`` (>= 0) from a sphere's centre at
-    ``t_ca`` along the beam, spot standard deviation ``spot_sigma``; and the covered share."""
+    ``t_ca`` along the beam, spot standard deviation ``spot_sigma``, the spot's light cut to a disc
+    of ``extent_sigmas`` sigmas (``inf``: the endless Gaussian); and the covered share (of the
+    light within the disc). See the module notes."""
     x0, t_ca, r, sig = (np.asarray(v, dtype=np.float64)[:, None, None] for v in (x0, t_ca, radius, spot_sigma))
-    y = sig * _GH_X[None, :, None]
+    if math.isinf(extent_sigmas) and extent_sigmas > 0:
+        yk, wy = _GH_X, _GH_W
+        lo_k, hi_k, norm = np.full(yk.size, -np.inf), np.full(yk.size, np.inf), np.ones(yk.size)
+    else:
+        # the disc: the along-limb coordinate from the disc's lateral marginal (nodes in its
+        # probability, lrms.cylinder.footprint's table), the radial one given it a Gaussian cut to
+        # the disc's chord |xi| <= sqrt(R^2 - y^2)
+        yk, wy = disc_marginal_ppf(_GL_U, extent_sigmas), _GL_G
+        hi_k = np.sqrt(np.maximum(extent_sigmas**2 - yk * yk, 0.0))
+        lo_k, norm = -hi_k, np.maximum(2.0 * ndtr(hi_k) - 1.0, 1e-300)
+    y = sig * yk[None, :, None]
     ry = np.sqrt(np.maximum(r * r - y * y, 0.0))
-    p_lo, p_hi = ndtr((-ry - x0) / sig), ndtr((ry - x0) / sig)
-    c = np.maximum(p_hi - p_lo, 0.0)  # (N, J, 1)
+    a = np.maximum((-ry - x0) / sig, lo_k[None, :, None])
+    b = np.minimum((ry - x0) / sig, hi_k[None, :, None])
+    p_lo, p_hi = ndtr(a), ndtr(b)
+    c = np.maximum(p_hi - p_lo, 0.0)  # (N, J, 1): the covered share of the chord's light
     p = np.clip(p_lo + np.maximum(c, 1e-12) * _GL_U[None, None, :], 1e-15, 1.0 - 1e-15)
     x = x0 + sig * ndtri(p)
     depth = np.sqrt(np.maximum(r * r - x * x - y * y, 0.0))
     t = t_ca - depth
     cos = np.maximum(depth / r, 1e-3)
-    e = (_GH_W[None, :, None] * c * _GL_G[None, None, :]) * cos / np.square(np.maximum(t, 1e-3))
+    cw = wy[None, :, None] * c / norm[None, :, None]
+    e = (cw * _GL_G[None, None, :]) * cos / np.square(np.maximum(t, 1e-3))
     rng = np.sum(e * t, axis=(1, 2)) / np.maximum(np.sum(e, axis=(1, 2)), 1e-300)
-    share = np.sum(_GH_W[None, :] * c[:, :, 0], axis=1)
+    share = np.sum(cw[:, :, 0], axis=1)
     return np.asarray(rng, dtype=np.float64), np.asarray(share, dtype=np.float64)
 
 
@@ -118,10 +145,12 @@ def estimate_spot_scale(
     divergence_rad: float,
     profile_sigma: float,
     sigma_l: float,
+    extent: float = math.inf,
 ) -> SpotScale | None:
     """The spot scale from every beam (world ``origins``, unit ``dirs``, geometric ``ranges``) near
     the limbs of ``spheres`` (``(centre, calibrated radius)``), the nominal spot ``exit_diameter_m``
-    + ``divergence_rad`` x range with ``profile_sigma`` (:class:`lrms.cylinder.BeamOptics`)."""
+    + ``divergence_rad`` x range with ``profile_sigma`` and its light cut to ``extent`` nominal spot
+    radii (:class:`lrms.cylinder.BeamOptics`; ``inf``: the endless Gaussian)."""
     nominal = (profile_sigma * exit_diameter_m, profile_sigma * divergence_rad)
     parts: list[tuple[FloatArray, ...]] = []
     for centre, radius in spheres:
@@ -130,7 +159,7 @@ def estimate_spot_scale(
     if not parts:
         return None
     x0, t_ca, rad, rng = (np.concatenate(z) for z in zip(*parts, strict=True))
-    return fit_spot_scale(x0, t_ca, rad, rng, sigma_l, nominal)
+    return fit_spot_scale(x0, t_ca, rad, rng, sigma_l, nominal, extent_sigmas=extent / (2.0 * profile_sigma))
 
 
 def fit_spot_scale(
@@ -141,8 +170,11 @@ def fit_spot_scale(
     sigma_l: float,
     nominal_sigma: tuple[float, float],
     outlier_sigma: float = 5.0,
+    extent_sigmas: float = math.inf,
 ) -> SpotScale | None:
-    """Fit the spot scale to limb beams (see the module notes); ``None`` with too few beams."""
+    """Fit the spot scale to limb beams (see the module notes), the spot's light cut to a disc of
+    ``extent_sigmas`` sigmas (:func:`limb_echo`); ``None`` with too few beams."""
+    ext = extent_sigmas
     keep = np.ones(x0.size, dtype=bool)
     best = 1.0
     for _ in range(2):
@@ -153,22 +185,23 @@ def fit_spot_scale(
 
         def ssr(s: float, xs: FloatArray = xs, ts: FloatArray = ts, rs: FloatArray = rs, ls: FloatArray = ls,
                 base: FloatArray = base) -> float:  # fmt: skip
-            return float(np.sum(np.square(ls - limb_echo(xs, ts, rs, s * base)[0])))
+            return float(np.sum(np.square(ls - limb_echo(xs, ts, rs, s * base, ext)[0])))
 
         grid = np.geomspace(*SCALE_BOUNDS, 25)
         costs = [ssr(float(g)) for g in grid]
         k = int(np.argmin(costs))
         lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, grid.size - 1)]
         best = float(optimize.minimize_scalar(ssr, bounds=(lo, hi), method="bounded", options={"xatol": 1e-5}).x)
-        res = ranges - limb_echo(x0, t_ca, radius, best * (nominal_sigma[0] + nominal_sigma[1] * t_ca))[0]
+        res = ranges - limb_echo(x0, t_ca, radius, best * (nominal_sigma[0] + nominal_sigma[1] * t_ca), ext)[0]
         keep = np.abs(res) <= outlier_sigma * sigma_l
     if int(keep.sum()) < MIN_LIMB_BEAMS:  # the last cut left too few for the final u
         return None
     xs, ts, rs, ls = x0[keep], t_ca[keep], radius[keep], ranges[keep]
     base = nominal_sigma[0] + nominal_sigma[1] * ts
     h = 1e-3 * best
-    jac = (limb_echo(xs, ts, rs, (best + h) * base)[0] - limb_echo(xs, ts, rs, (best - h) * base)[0]) / (2 * h)
-    res = ls - limb_echo(xs, ts, rs, best * base)[0]
+    up, dn = limb_echo(xs, ts, rs, (best + h) * base, ext)[0], limb_echo(xs, ts, rs, (best - h) * base, ext)[0]
+    jac = (up - dn) / (2 * h)
+    res = ls - limb_echo(xs, ts, rs, best * base, ext)[0]
     n = res.size
     s0sq = float(np.sum(np.square(res / sigma_l))) / max(n - 1, 1)
     info = float(np.sum(np.square(jac / sigma_l)))

@@ -129,9 +129,11 @@ class CalibrationResult:
     #: One per sweep when the sweeps were adjusted with separate poses (empty: one shared pose).
     poses: tuple[PoseFit, ...] = ()
     #: The scanner's spot scale from the spheres, ``{"spot_scale": s, "spot_scale_u": u,
-    #: "exit_diameter_m", "divergence_rad", "profile_sigma", "assumed_scale"}``: ``s`` multiplies the
-    #: nominal spot (exit diameter, divergence, the Gaussian's sigma over the diameter) it was
-    #: estimated against, stored with it; ``assumed_scale`` is the
+    #: "exit_diameter_m", "divergence_rad", "profile_sigma", "extent", "assumed_scale"}``: ``s``
+    #: multiplies the nominal spot (exit diameter, divergence, the Gaussian's sigma over the
+    #: diameter, the disc of ``extent`` spot radii its light is cut to) it was estimated against,
+    #: stored with it (``extent`` absent in older files: those were estimated with an endless
+    #: Gaussian, and :meth:`beam_optics` refuses them); ``assumed_scale`` is the
     #: scale the final adjustment of the rig used (differs from ``s`` by more than 2 ``u`` when the
     #: second stage did not settle; absent in older files). ``None`` when not estimated (thin beam,
     #: no spheres).
@@ -204,11 +206,13 @@ class CalibrationResult:
         """``nominal`` (a :class:`lrms.cylinder.BeamOptics`) with this calibration's spot scale
         applied: exit diameter and divergence are ``s`` x the nominal spot the scale was estimated
         against (``optics["exit_diameter_m"]``, ``optics["divergence_rad"]``, with the spot profile
-        ``optics["profile_sigma"]``), ``spot_scale_u`` the
-        relative uncertainty of the spot size, ``u / s``. ``nominal`` itself when the calibration has
-        no spot scale or ``nominal`` is ``None`` (thin beam). Raises :class:`CalibrationError` when
-        ``nominal``'s exit diameter, divergence or profile sigma differs from the calibration's (the scale is
-        relative to that spot and would be applied to another)."""
+        ``optics["profile_sigma"]`` and its light cut to ``optics["extent"]`` spot radii),
+        ``spot_scale_u`` the relative uncertainty of the spot size, ``u / s``. ``nominal`` itself
+        when the calibration has no spot scale or ``nominal`` is ``None`` (thin beam). Raises
+        :class:`CalibrationError` when ``nominal``'s exit diameter, divergence, profile sigma or
+        extent differs from the calibration's (the scale is relative to that spot and would be
+        applied to another), and for an older calibration without ``extent`` (its scale was
+        estimated with an endless Gaussian spot, the fit's ends: recalibrate)."""
         if self.optics is None or nominal is None:
             return nominal
         import dataclasses
@@ -223,6 +227,17 @@ class CalibrationResult:
                     f"(exit {o['exit_diameter_m'] * 1e3:.6g} mm, divergence {o['divergence_rad'] * 1e3:.6g} mrad,"
                     f" profile sigma {o['profile_sigma']:.6g})"
                 )
+        if "extent" not in o:
+            raise CalibrationError(
+                "the calibration's spot scale was estimated with an endless Gaussian spot (a file without the "
+                f"optics' extent), but the fit's spot ends at extent {nominal.extent:.6g} spot radii: the scale "
+                "reads about 2 % low under that model (docs/calibration.md); recalibrate"
+            )
+        if not math.isclose(nominal.extent, o["extent"], rel_tol=1e-9):
+            raise CalibrationError(
+                f"the calibration's spot scale is relative to a spot cut at extent {o['extent']:.6g} spot radii, "
+                f"but the fit's optics give extent {nominal.extent:.6g}: use the calibration's extent"
+            )
         s, u = o["spot_scale"], o["spot_scale_u"]
         return dataclasses.replace(
             nominal,
@@ -274,7 +289,7 @@ _LMS1XX_PROFILE_SIGMA = BeamOptics().profile_sigma
 
 def _optics(d: Any) -> dict[str, float] | None:
     """The ``optics`` entry checked; a file without the nominal spot (older files) gets the LMS1xx
-    defaults it was estimated against."""
+    defaults it was estimated against; one without ``extent`` keeps none (an endless Gaussian)."""
     if d is None:
         return None
     s, u = float(d["spot_scale"]), float(d["spot_scale_u"])
@@ -296,6 +311,11 @@ def _optics(d: Any) -> dict[str, float] | None:
         raise ValueError(f"optics: profile_sigma must be within (0, 10], got {out['profile_sigma']}")
     if out["exit_diameter_m"] == 0 and out["divergence_rad"] == 0:
         raise ValueError("optics: the nominal spot must not be of zero size")
+    if d.get("extent") is not None:  # absent: an older file, estimated with an endless Gaussian
+        e = float(d["extent"])
+        if not (np.isfinite(e) and 0.1 <= e <= 10):
+            raise ValueError(f"optics: extent must be within [0.1, 10] spot radii, got {e}")
+        out["extent"] = e
     if d.get("assumed_scale") is not None:
         a = float(d["assumed_scale"])
         if not (np.isfinite(a) and a > 0):

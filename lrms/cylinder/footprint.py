@@ -260,6 +260,15 @@ def disc_marginal_cdf(z: FloatArray | float, extent_sigmas: float) -> FloatArray
     return np.asarray(np.interp(np.asarray(z, dtype=np.float64), grid, cum), dtype=np.float64)
 
 
+def disc_marginal_ppf(p: FloatArray | float, extent_sigmas: float) -> FloatArray:
+    """The inverse of :func:`disc_marginal_cdf`: the lateral coordinate (sigmas) below which the
+    share ``p`` (in [0, 1]) of a Gaussian spot cut to a disc of ``extent_sigmas`` sigmas lies."""
+    if not (np.isfinite(extent_sigmas) and extent_sigmas > 0):
+        raise FitError(f"the disc's extent must be a positive number of sigmas, got {extent_sigmas!r}")
+    grid, cum = _disc_table(float(extent_sigmas))
+    return np.asarray(np.interp(np.asarray(p, dtype=np.float64), cum, grid), dtype=np.float64)
+
+
 def first_hit_range(
     x0: FloatArray,
     t_ca: FloatArray,

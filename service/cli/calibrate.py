@@ -204,7 +204,8 @@ def _print_text(d: dict[str, Any], out: str | None) -> None:
         o = d["optics"]
         print(
             f"spot scale from the spheres: {o['spot_scale']:.3f} (u {o['spot_scale_u']:.3f}) x the nominal spot"
-            f" ({1e3 * o['exit_diameter_m']:.3g} mm, {1e3 * o['divergence_rad']:.3g} mrad)"
+            f" ({1e3 * o['exit_diameter_m']:.3g} mm, {1e3 * o['divergence_rad']:.3g} mrad"
+            + (f", cut at {o['extent']:.3g} spot radii)" if "extent" in o else ", an endless Gaussian)")
             + (f"; the rig was adjusted with {o['assumed_scale']:.3f}" if "assumed_scale" in o else "")
         )
     if out:
