@@ -6,12 +6,14 @@ optics; without optics (the thin beam) there is none."""
 from __future__ import annotations
 
 import json
+import logging
 
 import numpy as np
 import pytest
 
 from lrms.calibration import Artefact, CalibrationError, CalibrationOptions, CalibrationResult, Observations, calibrate
 from lrms.calibration.optics import MIN_LIMB_BEAMS, estimate_spot_scale, fit_spot_scale, limb_echo
+from lrms.calibration.result import ENDLESS_SCALE_U
 from lrms.cylinder import BeamOptics
 from lrms.kinematics import RigCalibration, RigModel
 from sim.scene import LMS1xxSensor, Plane, Scene, SensorModel, Sphere, cast_beams, lms1xx_device_angles
@@ -118,7 +120,9 @@ def test_limb_echo_reads_short_near_the_limb_and_thin_inside() -> None:
     assert share_big[3] > 0.2  # and still meets the sphere beyond the thin-beam silhouette
 
 
-def test_the_stored_spot_scale_carries_its_nominal_spot_and_refuses_another(scaled_spot: CalibrationResult) -> None:
+def test_the_stored_spot_scale_carries_its_nominal_spot_and_refuses_another(
+    scaled_spot: CalibrationResult, caplog: pytest.LogCaptureFixture
+) -> None:
     """The scale multiplies the nominal spot it was estimated against, stored with it; a fit with
     another nominal spot is refused; an older file (no nominal stored) reads as the LMS1xx's."""
     d = json.loads(scaled_spot.to_json())
@@ -150,8 +154,11 @@ def test_the_stored_spot_scale_carries_its_nominal_spot_and_refuses_another(scal
     lms1xx = {"exit_diameter_m": 0.008, "divergence_rad": 0.015, "profile_sigma": 0.25}
     assert old.optics == {"spot_scale": 1.5, "spot_scale_u": 0.1, **lms1xx}
     assert CalibrationResult.from_json(old.to_json()).optics == old.optics
-    with pytest.raises(CalibrationError, match="endless Gaussian"):  # its scale is not the cut spot's
-        old.beam_optics(BeamOptics())
+    with caplog.at_level(logging.WARNING, logger="lrms.calibration"):  # applied, its model shift as u
+        applied_old = old.beam_optics(BeamOptics())
+    assert "endless Gaussian" in caplog.text
+    assert applied_old.exit_diameter_m == pytest.approx(0.008 * 1.5)
+    assert applied_old.spot_scale_u == pytest.approx(np.hypot(0.1 / 1.5, ENDLESS_SCALE_U))
     d["optics"] = {**o, "assumed_scale": 0.0}
     with pytest.raises(CalibrationError, match="assumed_scale"):
         CalibrationResult.from_dict(d)
