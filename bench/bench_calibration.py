@@ -40,10 +40,14 @@ each pose.
 
     python -m bench.bench_calibration [--runs 20] [--poses 3] [--speed 20] [--sweeps 1] [--plane-points 5000] [--seed 0]
         [--layout room|long-bar|network|network-large|axis] [--sweep-deg 340] [--u-distance 3e-5] [--no-part] [--lms1xx]
-        [--save runs.json]
+        [--resegmentations 4] [--save runs.json]
     python -m bench.bench_calibration --combine a.json b.json   # the tables over several --save files
 
 The defaults are the documented design of docs/calibration.md ("k1 over 20 random rigs").
+
+``--resegmentations N``: the calibration re-segments at most N times (1: once, the rule before;
+docs/calibration.md, "The axis layout"). Each run prints every sphere's beams kept by the
+adjustment / simulated on it and every parameter's error / reported std.
 
 ``--lms1xx``: also seed 003's part measured with the LMS1xx footprint sensor (noise on) as the
 service measures it (:func:`lms_part`), before (nominal mapping, uncalibrated budget) and after
