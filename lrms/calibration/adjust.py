@@ -102,7 +102,7 @@ MIN_COS = 0.3
 #: rough estimate is taken back when the estimate improves (docs/calibration.md, "Calibration by
 #: adjustment").
 MAX_RESEGMENTATIONS = 4
-#: The re-segmentation has settled when no surface's beam count changed by more than this (relative).
+#: The re-segmentation has settled when no surface's beam count grew by more than this (relative).
 RESEGMENT_TOLERANCE = 0.005
 #: A surface needs this many usable beams to stay in the adjustment.
 MIN_SURFACE_BEAMS = 30
@@ -178,11 +178,13 @@ def sphere_spot_bias(depth: FloatArray, radius: float, sigma: FloatArray, t: Flo
 
 
 def resegment_settled(before: dict[str, int], after: dict[str, int], tolerance: float = RESEGMENT_TOLERANCE) -> bool:
-    """Whether two rounds' per-surface beam counts (:meth:`Adjustment.resegment`) agree: the same
-    surfaces, each count within ``tolerance`` (relative) of the round before."""
+    """Whether the re-segmentation has stopped taking beams back: the same surfaces as the round
+    before (:meth:`Adjustment.resegment`), none gaining more than ``tolerance`` (relative). A round
+    that only loses beams ends it too: re-segmenting further then drifts (measured: a spurious
+    small "plane" of the detection slowly taking beams off two spheres, docs/calibration.md)."""
     if before.keys() != after.keys():
         return False
-    return all(abs(after[k] - n) <= tolerance * max(n, 1) for k, n in before.items())
+    return all(after[k] - n <= tolerance * max(n, 1) for k, n in before.items())
 
 
 def _basis(n: FloatArray) -> FloatArray:

@@ -60,8 +60,8 @@ def test_a_two_pose_calibration_keeps_the_beams_of_its_spheres() -> None:
     kept = {sf.artefact_index: sf.points for sf in res.surfaces if sf.kind == "sphere"}
     assert set(kept) == set(range(5))
     # every sphere keeps >= 90 % of the beams simulated on it that meet it at cos(incidence) >=
-    # MIN_COS (the single re-segmentation under the first estimate kept 2/3 of sphere 1's, the
-    # sphere on the second pose's shaft)
+    # MIN_COS. (This short sweep does not show the loss of the single re-segmentation of before,
+    # which kept it too; the bench's 20 deg/s three-pose sweeps do: docs/calibration.md.)
     for a, n in kept.items():
         assert n >= 0.9 * usable[a], (a, n, usable[a])
     assert 2 <= res.residuals["resegmentations"] <= AdjustOptions().max_resegmentations
@@ -72,10 +72,11 @@ def test_a_two_pose_calibration_keeps_the_beams_of_its_spheres() -> None:
         assert abs(err) <= 4 * std[name], (name, err, std[name])
 
 
-def test_resegmentation_settles_on_the_same_surfaces_within_the_tolerance() -> None:
+def test_resegmentation_settles_when_no_surface_gains_beams() -> None:
     before = {"plane 0": 10_000, "sphere 1": 2000}
-    assert resegment_settled(before, {"plane 0": 10_040, "sphere 1": 1991})
+    assert resegment_settled(before, {"plane 0": 10_040, "sphere 1": 2009})
     assert not resegment_settled(before, {"plane 0": 10_000, "sphere 1": 2011})
+    assert resegment_settled(before, {"plane 0": 9_000, "sphere 1": 1800})  # only losing: stop
     assert not resegment_settled(before, {"plane 0": 10_000})  # a surface dropped: not settled
     assert not resegment_settled(before, {"plane 0": 10_000, "sphere 2": 2000})
 
