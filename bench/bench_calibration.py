@@ -40,10 +40,14 @@ each pose.
 
     python -m bench.bench_calibration [--runs 20] [--poses 3] [--speed 20] [--sweeps 1] [--plane-points 5000] [--seed 0]
         [--layout room|long-bar|network|network-large|axis] [--sweep-deg 340] [--u-distance 3e-5] [--no-part] [--lms1xx]
-        [--save runs.json]
+        [--resegmentations 4] [--save runs.json]
     python -m bench.bench_calibration --combine a.json b.json   # the tables over several --save files
 
 The defaults are the documented design of docs/calibration.md ("k1 over 20 random rigs").
+
+``--resegmentations N``: the calibration re-segments at most N times (1: once, the rule before;
+docs/calibration.md, "The axis layout"). Each run prints every sphere's beams kept by the
+adjustment / simulated on it and every parameter's error / reported std.
 
 ``--lms1xx``: also seed 003's part measured with the LMS1xx footprint sensor (noise on) as the
 service measures it (:func:`lms_part`), before (nominal mapping, uncalibrated budget) and after
@@ -166,14 +170,27 @@ AXIS_POSES = tuple(_pose(t, yaw, tip) for t, yaw, tip in ROOM_AXIS_POSES)
 
 
 def calibration_sweep(
-    rig: RigModel, speed_deg_s: float, seed: int, scene: Scene, span_deg: float = 180.0, pose: np.ndarray | None = None
+    rig: RigModel,
+    speed_deg_s: float,
+    seed: int,
+    scene: Scene,
+    span_deg: float = 180.0,
+    pose: np.ndarray | None = None,
+    hits: dict[str, int] | None = None,
 ) -> Observations:
+    """One simulated calibration sweep; ``hits``, when given, gathers the valid beams simulated on
+    each scene object (by name)."""
     cal = RigCalibration(model=rig, world_from_rig=np.eye(4) if pose is None else pose)
     half = D(span_deg / 2)
     _, s = continuous_sweep_cloud(
         scene, cal, SensorModel(), -half, half, D(speed_deg_s), rng=np.random.default_rng(seed)
     )
     v = s.valid
+    if hits is not None:
+        for k, n in zip(*np.unique(s.index[v], return_counts=True), strict=True):
+            if k >= 0:
+                name = scene.objects[int(k)].name
+                hits[name] = hits.get(name, 0) + int(n)
     return Observations.from_raw(s.ranges[v], cal.alpha(s.device_angle[v]), cal.beta(s.motor_angle[v]))
 
 
@@ -330,6 +347,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--plane-points", type=int, default=5000, help="beams used per plane")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
+        "--resegmentations", type=int, default=AdjustOptions.max_resegmentations,
+        help="re-segmentation rounds at most (1: the single re-segmentation of before)",
+    )  # fmt: skip
+    ap.add_argument(
         "--layout", choices=("room", "long-bar", "network", "network-large", "axis"), default="network-large"
     )
     ap.add_argument("--sweep-deg", type=float, default=340.0, help="motor span of a sweep, centred on 0")
@@ -347,7 +368,9 @@ def main(argv: list[str] | None = None) -> int:
     rng = np.random.default_rng(args.seed)
     scene, art = layout(args.layout, args.u_distance)
     poses = AXIS_POSES if args.layout == "axis" else POSES
-    opts = CalibrationOptions(adjust=AdjustOptions(max_plane_points=args.plane_points))
+    opts = CalibrationOptions(
+        adjust=AdjustOptions(max_plane_points=args.plane_points, max_resegmentations=args.resegmentations)
+    )
     errs: dict[str, list[float]] = {}
     stds: dict[str, list[float]] = {}
     rows = []
@@ -355,9 +378,10 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     for run in range(args.runs):
         rig = draw_rig(rng)
+        hits: dict[str, int] = {}
         sweeps = [
             calibration_sweep(
-                rig, args.speed, args.seed * 100_000 + 100 * run + 10 * j + k, scene, args.sweep_deg, poses[j]
+                rig, args.speed, args.seed * 100_000 + 100 * run + 10 * j + k, scene, args.sweep_deg, poses[j], hits
             )
             for j in range(args.poses)
             for k in range(args.sweeps)
@@ -371,6 +395,17 @@ def main(argv: list[str] | None = None) -> int:
             stds.setdefault(name, []).append(std[name])
             z = abs(errs[name][-1]) / std[name]
             worst = (name, z) if z > worst[1] else worst
+        print(
+            f"        spheres kept / simulated ({res.residuals['resegmentations']:.0f} re-segmentations): "
+            + ", ".join(
+                f"{sf.artefact_index} {sf.points}/{hits.get(f'sphere{sf.artefact_index}', 0)}"
+                for sf in res.surfaces
+                if sf.kind == "sphere"
+            )
+            + "\n        error / std: "
+            + " ".join(f"{n} {errs[n][-1] / std[n]:+.1f}" for n in res.estimated),
+            flush=True,
+        )
         posed = dataclasses.replace(res.model, beta_zero=truth.beta_zero)  # the rig's pose about the shaft
         seed = 10_000 + run
         if args.no_part:

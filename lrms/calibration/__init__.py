@@ -22,7 +22,14 @@ from typing import Any
 import numpy as np
 
 import lrms
-from lrms.calibration.adjust import GOAL, SPREAD, STRUCTURAL, Adjustment, AdjustOptions
+from lrms.calibration.adjust import (
+    GOAL,
+    SPREAD,
+    STRUCTURAL,
+    Adjustment,
+    AdjustOptions,
+    resegment_settled,
+)
 from lrms.calibration.data import (
     Artefact,
     ArtefactError,
@@ -130,15 +137,26 @@ def calibrate(
         planes, spheres = _detect(obs, artefact, nom, opts.detect)
         initial = None
 
+    rounds = 0
+
     def adjust(spot: tuple[float, float] | None) -> tuple[Adjustment, list[str], dict[str, str], Any, Any, Any]:
+        nonlocal rounds
         adj = Adjustment(obs, planes, spheres, artefact, nom, nm, opts.adjust, which=which if separate else None,
                          poses=initial, spot=spot)  # fmt: skip
         adj._init_sigma()
         names, _, _ = adj.choose_free()
         adj.solve(names)  # a first estimate from the loose segmentation of the nominal cloud
-        adj.resegment(opts.detect.min_plane_points, opts.adjust.outlier_sigma)
-        names, held, eig = adj.choose_free()
-        adj.solve(names)
+        # re-segment under each new estimate until the surfaces' beam counts settle: beams outside
+        # every surface's reach under a rough estimate come back once the estimate is better
+        previous: dict[str, int] | None = None
+        for rounds in range(1, opts.adjust.max_resegmentations + 1):
+            counts = adj.resegment(opts.detect.min_plane_points, opts.adjust.outlier_sigma)
+            names, held, eig = adj.choose_free()
+            _log.debug("re-segmentation %d: %s", rounds, counts)
+            if previous is not None and resegment_settled(previous, counts):
+                break
+            adj.solve(names)
+            previous = counts
         adj.reject_outliers(names)
         r, jac, iterations = adj.solve(names)
         return adj, names, held, eig, (r, jac, iterations), adj.covariance(names, jac, r)
@@ -201,6 +219,7 @@ def calibrate(
             "rms_m": float(np.sqrt(np.mean(metric**2))),
             "rms_weighted": float(np.sqrt(np.mean(r**2))),
             "iterations": float(iterations),
+            "resegmentations": float(rounds),
             "planes": float(len(adj.state.planes)),
             "spheres": float(len(adj.state.spheres)),
         },

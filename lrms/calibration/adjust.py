@@ -97,6 +97,13 @@ HOLD_ORDER = ("time_offset", "backlash", "k1", "beta_scale", "k0", "q", "tilt_x"
 MIN_EIGENVALUE = 1.0
 #: Beams meeting a sphere at cos(incidence) below this are not used (silhouette: range and angle mix).
 MIN_COS = 0.3
+#: Re-segmentations at most (each under the estimate solved after the one before; the first under the
+#: estimate from the nominal cloud's loose segmentation): a beam outside every surface's reach under a
+#: rough estimate is taken back when the estimate improves (docs/calibration.md, "Calibration by
+#: adjustment").
+MAX_RESEGMENTATIONS = 4
+#: The re-segmentation has settled when no surface's beam count grew by more than this (relative).
+RESEGMENT_TOLERANCE = 0.005
 #: A surface needs this many usable beams to stay in the adjustment.
 MIN_SURFACE_BEAMS = 30
 #: With a finite spot: a beam is censored when its spot, out to this many spot sigmas, is not wholly
@@ -113,6 +120,12 @@ class AdjustOptions:
     outlier_sigma: float = 5.0
     max_plane_points: int = 20000
     seed: int = 0
+    #: Re-segmentations at most (1: once, under the first estimate, as before issue 12's axis work).
+    max_resegmentations: int = MAX_RESEGMENTATIONS
+
+    def __post_init__(self) -> None:
+        if self.max_resegmentations < 1:
+            raise CalibrationError(f"max_resegmentations must be at least 1, got {self.max_resegmentations}")
 
 
 @dataclass
@@ -165,6 +178,16 @@ def sphere_spot_bias(depth: FloatArray, radius: float, sigma: FloatArray, t: Flo
         np.square(sigma) * ((3.0 * depth**2 - radius**2) / (2.0 * depth**3) - 2.0 * x0sq / (depth**2 * t)),
         dtype=np.float64,
     )
+
+
+def resegment_settled(before: dict[str, int], after: dict[str, int], tolerance: float = RESEGMENT_TOLERANCE) -> bool:
+    """Whether the re-segmentation has stopped taking beams back: the same surfaces as the round
+    before (:meth:`Adjustment.resegment`), none gaining more than ``tolerance`` (relative). A round
+    that only loses beams ends it too: re-segmenting further then drifts (measured: a spurious
+    small "plane" of the detection slowly taking beams off two spheres, docs/calibration.md)."""
+    if before.keys() != after.keys():
+        return False
+    return all(after[k] - n <= tolerance * max(n, 1) for k, n in before.items())
 
 
 def _basis(n: FloatArray) -> FloatArray:
@@ -490,13 +513,17 @@ class Adjustment:
                 break
         return r, jac, it
 
-    def resegment(self, min_plane_points: int, max_sigma: float) -> None:
+    def resegment(self, min_plane_points: int, max_sigma: float) -> dict[str, int]:
         """Give every beam to its nearest surface under the current estimate, keeping beams within
         ``max_sigma`` range-noise sigmas of it. A beam is dropped when the point where the model
         says it meets its surface (noise-free: a test on the measured point would select beams by
         their noise and bias the range) lies within that reach of a second surface (corners,
         edges). A plane that only gathered the bends of a miscalibrated cloud loses its points and
-        is dropped; planes are subsampled again, grazing beams and silhouettes left out."""
+        is dropped; planes are subsampled again, grazing beams and silhouettes left out.
+
+        Returns the beams given to each surface ("plane k" in the order kept, "sphere i" with the
+        artefact's index), before the planes' subsampling and the silhouette trim: what
+        :func:`resegment_settled` compares between rounds."""
         x = self.world_points(self.state)
         reach = max_sigma * self.noise.sigma_l
         live = list(self.state.planes)
@@ -519,15 +546,25 @@ class Adjustment:
             break
         rng = np.random.default_rng(self.options.seed + 1)
         planes = []
+        assigned: dict[str, int] = {}
         for k, pl in enumerate(live):
             idx = np.flatnonzero(ok & (nearest == k))
+            assigned[f"plane {k}"] = int(idx.size)
             _, _, cos, _, _ = self._los(self.state.rig, idx, pl)
             planes.append(_Plane.make(self._cap(idx[cos >= MIN_COS], rng), pl.normal, pl.offset))
         for k, sp in enumerate(self.state.spheres):
             sp.index = np.flatnonzero(ok & (nearest == len(live) + k))
+            assigned[f"sphere {sp.artefact_index}"] = int(sp.index.size)
         self.state = _State(self.state.rig, planes, self.state.spheres, self.state.rot, self.state.trans)
         self._trim_silhouettes()
         self._init_sigma()
+        return assigned
+
+    def surface_beams(self) -> dict[str, int]:
+        """The beams each surface uses now ("plane k", "sphere i" with the artefact's index)."""
+        out = {f"plane {k}": int(pl.index.size) for k, pl in enumerate(self.state.planes)}
+        out.update({f"sphere {sp.artefact_index}": int(sp.index.size) for sp in self.state.spheres})
+        return out
 
     def _trim_silhouettes(self) -> None:
         """Keep the beams that meet their surface at cos(incidence) >= :data:`MIN_COS` (grazing beams
