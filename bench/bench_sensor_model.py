@@ -40,7 +40,9 @@ coverage with its exact (Clopper-Pearson) binomial 95 % interval. Example:
 Run: ``.venv/bin/python -m bench.bench_sensor_model [--sweeps 20] [--only seed003|parts] [--clouds roi,room]
 [--fit thin|footprint|both]
 [--edges 0.3:first,...] [--sub-rays 128] [--no-offset] [--parts 0.3:3.5,...]``. With the footprint fit,
-each row also counts the family the model choice picked (1st / wtd / thin).
+each row also counts the family the model choice picked (1st / wtd / thin). The parts' rows are
+the 30 % energy-weighted edge alone unless ``--edges`` names a family (then that family, as for
+seed 003's part).
 """
 
 from __future__ import annotations
@@ -299,7 +301,8 @@ def main(argv: list[str] | None = None) -> None:
         parts = [(d, r) for d in (0.3, 1.0) for r in (2.0, 3.5, 5.0)]
         if args.parts:
             parts = [(float(x.split(":")[0]), float(x.split(":")[1])) for x in args.parts.split(",")]
-        scenes += [(f"room, D {d:.1f} m at {r:.1f} m", d, r, False) for d, r in parts]
+        # the parts get the edge family only when --edges names it (else 30 % energy-weighted alone)
+        scenes += [(f"room, D {d:.1f} m at {r:.1f} m", d, r, bool(args.edges)) for d, r in parts]
     for label, diameter, distance, family in scenes:
         t0 = time.perf_counter()
         g = cached_geometry(args.cache, label, diameter, distance, sensor)
