@@ -47,7 +47,8 @@ The defaults are the documented design of docs/calibration.md ("k1 over 20 rando
 
 ``--resegmentations N``: the calibration re-segments at most N times (1: once, the rule before;
 docs/calibration.md, "The axis layout"). Each run prints every sphere's beams kept by the
-adjustment / simulated on it and every parameter's error / reported std.
+adjustment / usable (echoes at cos(incidence) >= 0.3, what the adjustment can use) / simulated on
+it and every parameter's error / reported std.
 
 ``--lms1xx``: also seed 003's part measured with the LMS1xx footprint sensor (noise on) as the
 service measures it (:func:`lms_part`), before (nominal mapping, uncalibrated budget) and after
