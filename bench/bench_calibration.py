@@ -47,7 +47,8 @@ The defaults are the documented design of docs/calibration.md ("k1 over 20 rando
 
 ``--resegmentations N``: the calibration re-segments at most N times (1: once, the rule before;
 docs/calibration.md, "The axis layout"). Each run prints every sphere's beams kept by the
-adjustment / simulated on it and every parameter's error / reported std.
+adjustment / usable (echoes at cos(incidence) >= 0.3, what the adjustment can use) / simulated on
+it and every parameter's error / reported std.
 
 ``--lms1xx``: also seed 003's part measured with the LMS1xx footprint sensor (noise on) as the
 service measures it (:func:`lms_part`), before (nominal mapping, uncalibrated budget) and after
@@ -74,6 +75,7 @@ from lrms.calibration import (
     Observations,
     calibrate,
 )
+from lrms.calibration.adjust import MIN_COS
 from lrms.cylinder import Cylinder, Rays, fit_cylinder
 from lrms.kinematics import RigCalibration, RigModel
 from sim.scene import (
@@ -177,9 +179,11 @@ def calibration_sweep(
     span_deg: float = 180.0,
     pose: np.ndarray | None = None,
     hits: dict[str, int] | None = None,
+    usable: dict[str, int] | None = None,
 ) -> Observations:
     """One simulated calibration sweep; ``hits``, when given, gathers the valid beams simulated on
-    each scene object (by name)."""
+    each scene object (by name), ``usable`` those of them an adjustment can use (cos(incidence) >=
+    :data:`lrms.calibration.adjust.MIN_COS`: no silhouettes)."""
     cal = RigCalibration(model=rig, world_from_rig=np.eye(4) if pose is None else pose)
     half = D(span_deg / 2)
     _, s = continuous_sweep_cloud(
@@ -191,6 +195,12 @@ def calibration_sweep(
             if k >= 0:
                 name = scene.objects[int(k)].name
                 hits[name] = hits.get(name, 0) + int(n)
+    if usable is not None:
+        good = v & (s.cos_incidence >= MIN_COS)
+        for k, n in zip(*np.unique(s.index[good], return_counts=True), strict=True):
+            if k >= 0:
+                name = scene.objects[int(k)].name
+                usable[name] = usable.get(name, 0) + int(n)
     return Observations.from_raw(s.ranges[v], cal.alpha(s.device_angle[v]), cal.beta(s.motor_angle[v]))
 
 
@@ -379,10 +389,10 @@ def main(argv: list[str] | None = None) -> int:
     for run in range(args.runs):
         rig = draw_rig(rng)
         hits: dict[str, int] = {}
+        usable: dict[str, int] = {}
+        sweep_seed = args.seed * 100_000 + 100 * run
         sweeps = [
-            calibration_sweep(
-                rig, args.speed, args.seed * 100_000 + 100 * run + 10 * j + k, scene, args.sweep_deg, poses[j], hits
-            )
+            calibration_sweep(rig, args.speed, sweep_seed + 10 * j + k, scene, args.sweep_deg, poses[j], hits, usable)
             for j in range(args.poses)
             for k in range(args.sweeps)
         ]
@@ -396,9 +406,10 @@ def main(argv: list[str] | None = None) -> int:
             z = abs(errs[name][-1]) / std[name]
             worst = (name, z) if z > worst[1] else worst
         print(
-            f"        spheres kept / simulated ({res.residuals['resegmentations']:.0f} re-segmentations): "
+            f"        spheres kept / usable / simulated ({res.residuals['resegmentations']:.0f} re-segmentations): "
             + ", ".join(
-                f"{sf.artefact_index} {sf.points}/{hits.get(f'sphere{sf.artefact_index}', 0)}"
+                f"{sf.artefact_index} {sf.points}/{usable.get(f'sphere{sf.artefact_index}', 0)}"
+                f"/{hits.get(f'sphere{sf.artefact_index}', 0)}"
                 for sf in res.surfaces
                 if sf.kind == "sphere"
             )

@@ -41,7 +41,7 @@ from lrms.calibration.data import (
     SphereSpec,
     concatenate,
 )
-from lrms.calibration.detect import DetectOptions, PlaneSeg, SphereSeg, detect_planes, detect_spheres
+from lrms.calibration.detect import DetectOptions, PlaneSeg, SphereSeg, detect_surfaces
 from lrms.calibration.optics import SpotScale, estimate_spot_scale
 from lrms.calibration.poses import RegistrationError, merge
 from lrms.calibration.result import CalibrationResult, Identifiability, PoseFit, SurfaceFit
@@ -293,14 +293,7 @@ def _detect(
 ) -> tuple[list[PlaneSeg], list[SphereSeg]]:
     """Planes and spheres in the cloud of ``obs`` mapped with the nominal rig."""
     points = nominal.forward(obs.l, obs.alpha, obs.beta, obs.omega)
-    rng = np.random.default_rng(opts.seed)
-    planes = detect_planes(points, opts, rng) if artefact.planes else []
-    if artefact.planes and not planes:
-        raise DetectionError(f"no planes found (none with >= {opts.min_plane_points} points)")
-    on_plane = np.zeros(len(obs), dtype=bool)
-    for pl in planes:
-        on_plane[pl.index] = True
-    return planes, detect_spheres(points, np.flatnonzero(~on_plane), artefact, opts)
+    return detect_surfaces(points, artefact, opts, np.random.default_rng(opts.seed))
 
 
 def _pose_fits(adj: Adjustment, sweeps: Sequence[Observations]) -> tuple[PoseFit, ...]:

@@ -84,15 +84,24 @@ def detect_planes(points: FloatArray, opts: DetectOptions, rng: np.random.Genera
             break
         members = idx[mask]
         free[members] = False
-        # a plane is large: a slice through a sphere or a bundle of leftovers is not one
-        sv = np.linalg.svd(points[members[:: max(1, members.size // 5000)]] - points[members].mean(axis=0),
-                           compute_uv=False)  # fmt: skip
-        if sv[1] / np.sqrt(min(members.size, 5000)) < opts.min_plane_extent_m:
-            continue
-        if not _mostly_connected(points[members], opts.plane_gap_m, rng):
-            continue  # caps of several spheres, or strips of other walls, that happen to line up
-        planes.append(PlaneSeg(members, model.normal.copy(), float(model.offset)))
+        if plane_support_ok(points, members, opts, rng):
+            planes.append(PlaneSeg(members, model.normal.copy(), float(model.offset)))
     return planes
+
+
+def plane_support_ok(points: FloatArray, members: IntArray, opts: DetectOptions, rng: np.random.Generator) -> bool:
+    """Whether ``points[members]`` can be a plane of the room: at least ``min_plane_points``, spread
+    at least ``min_plane_extent_m`` (standard deviation along its second axis: a slice through a
+    sphere or a bundle of leftovers is not a plane), and for the most part one connected patch
+    (neighbours within ``plane_gap_m``: caps of spheres that happen to line up, strips of other
+    walls are not)."""
+    if members.size < opts.min_plane_points:
+        return False
+    sv = np.linalg.svd(points[members[:: max(1, members.size // 5000)]] - points[members].mean(axis=0),
+                       compute_uv=False)  # fmt: skip
+    if sv[1] / np.sqrt(min(members.size, 5000)) < opts.min_plane_extent_m:
+        return False
+    return _mostly_connected(points[members], opts.plane_gap_m, rng)
 
 
 def _mostly_connected(pts: FloatArray, gap: float, rng: np.random.Generator, sample: int = 4000) -> bool:
@@ -164,6 +173,53 @@ def detect_spheres(
             f"diameter {', '.join(f'{2 * r:.4g}' for r in sorted(set(radii)))} m within {opts.radius_tolerance_m} m"
         )
     return _assign(found, artefact, opts)
+
+
+def detect_surfaces(
+    points: FloatArray, artefact: Artefact, opts: DetectOptions, rng: np.random.Generator
+) -> tuple[list[PlaneSeg], list[SphereSeg]]:
+    """Planes (when ``artefact.planes``) and the artefact's spheres in ``points`` (the rig at the origin).
+
+    A plane's points that lie on a found sphere's surface (within ``sphere_threshold_m``, on the
+    side facing the rig) are the sphere's, not the plane's: they are taken off the plane, and a
+    plane whose remaining support no longer passes :func:`plane_support_ok` (too few points, too
+    small, not one patch) is dropped: a slab of the loose RANSAC threshold through a sphere's cap,
+    with a few leftovers of the walls for extent, is no plane of the room. The spheres are then
+    found again among the points on no plane, until no plane changes (docs/calibration.md,
+    "Spurious planes on the spheres")."""
+    planes = detect_planes(points, opts, rng) if artefact.planes else []
+    if artefact.planes and not planes:
+        raise DetectionError(f"no planes found (none with >= {opts.min_plane_points} points)")
+    spheres = detect_spheres(points, _off(planes, len(points)), artefact, opts)
+    for _ in range(len(planes)):
+        kept: list[PlaneSeg] = []
+        for pl in planes:
+            on = np.zeros(pl.index.size, dtype=bool)
+            x = points[pl.index]
+            for sp in spheres:
+                rel = x - sp.center
+                on |= (np.abs(np.linalg.norm(rel, axis=1) - sp.radius) < opts.sphere_threshold_m) & (
+                    np.einsum("ij,ij->i", rel, x) < 0
+                )  # on the shell's side facing the rig (its back is hidden: a wall there is no sphere's)
+            if not on.any():
+                kept.append(pl)
+            elif plane_support_ok(points, pl.index[~on], opts, rng):
+                kept.append(PlaneSeg(pl.index[~on], pl.normal, pl.offset))
+        if len(kept) == len(planes) and all(a.index.size == b.index.size for a, b in zip(kept, planes, strict=True)):
+            break
+        planes = kept
+        if artefact.planes and not planes:
+            raise DetectionError("no planes found: every plane found lies on the spheres")
+        spheres = detect_spheres(points, _off(planes, len(points)), artefact, opts)
+    return planes, spheres
+
+
+def _off(planes: list[PlaneSeg], n: int) -> IntArray:
+    """The indices of ``n`` points on none of ``planes``."""
+    on_plane = np.zeros(n, dtype=bool)
+    for pl in planes:
+        on_plane[pl.index] = True
+    return np.flatnonzero(~on_plane)
 
 
 #: The most joint assignments of found to artefact spheres :func:`_assign` tries before it falls
