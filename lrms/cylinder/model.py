@@ -325,24 +325,18 @@ def knn_query(points: ArrayLike, backend: KnnBackend = "auto") -> Callable[[Arra
     if backend == "pykdtree" and kd is None:
         raise ModuleNotFoundError("the pykdtree k-nearest-neighbour backend is not installed (pip install pykdtree)")
     if kd is not None:
-        tree = kd(pts, leafsize=16)
+        tree: Any = kd(pts, leafsize=16)
+    else:
+        from scipy.spatial import cKDTree  # 0.3 s of imports: only without pykdtree
 
-        def query(q: ArrayLike, k: int) -> IntArray:
-            qq, kk = checked(q, k)
-            _, idx = tree.query(qq, k=kk)
-            return np.asarray(idx, dtype=np.intp).reshape(qq.shape[0], kk)
+        tree = cKDTree(pts, leafsize=16)
 
-        return query
-    from scipy.spatial import cKDTree  # 0.3 s of imports: only without pykdtree
-
-    ctree = cKDTree(pts, leafsize=16)
-
-    def cquery(q: ArrayLike, k: int) -> IntArray:
+    def query(q: ArrayLike, k: int) -> IntArray:
         qq, kk = checked(q, k)
-        _, idx = ctree.query(qq, k=kk)
+        _, idx = tree.query(qq, k=kk)
         return np.asarray(idx, dtype=np.intp).reshape(qq.shape[0], kk)
 
-    return cquery
+    return query
 
 
 def estimate_normals(
