@@ -11,49 +11,16 @@ import logging
 import numpy as np
 import pytest
 
-from lrms.calibration import Artefact, CalibrationError, CalibrationOptions, CalibrationResult, Observations, calibrate
+from lrms.calibration import CalibrationError, CalibrationOptions, CalibrationResult, calibrate
 from lrms.calibration.optics import MIN_LIMB_BEAMS, estimate_spot_scale, fit_spot_scale, limb_echo
 from lrms.calibration.result import ENDLESS_SCALE_U
 from lrms.cylinder import BeamOptics
-from lrms.kinematics import RigCalibration, RigModel
-from sim.scene import LMS1xxSensor, Plane, Scene, SensorModel, Sphere, cast_beams, lms1xx_device_angles
+from lrms.kinematics import RigModel
+from sim.scene import LMS1xxSensor, SensorModel
 from sim.scene.lms1xx import Footprint
+from sim.scene.spot_spheres import spheres_sweep, spheres_truth
 
-D = np.deg2rad
-#: Three spheres ahead of the rig (centre, diameter); their centre distances are known.
-SPHERES = (((0.6, 1.5, -0.3), 0.2), ((-0.8, 2.4, 0.45), 0.2), ((0.3, 3.4, -0.2), 0.25))
 TRUE_SCALE = 1.6
-
-
-def spheres_sweep(sensor: object, seed: int = 1, step_deg: float = 0.3) -> tuple[Observations, Artefact]:
-    """A step-and-scan sweep (-25..25 deg, 0.3 deg steps, beams 45..135 deg) of three spheres before
-    a wall by the nominal rig: few beams, so the footprint simulation stays quick."""
-    scene = Scene("spheres")
-    for i, (c, d) in enumerate(SPHERES):
-        scene.add(Sphere(np.array(c), d / 2), remission=0.8, name=f"sphere{i}")
-    scene.add(Plane((0.0, 4.5, 0.0), (0.0, -1.0, 0.0)), remission=0.5, name="back_wall")
-    cal = RigCalibration()
-    dev = lms1xx_device_angles(0.25)
-    dev = dev[(dev > D(45)) & (dev < D(135))]
-    mot = D(np.arange(-25.0, 25.0, step_deg))[:, None]
-    s = cast_beams(scene, cal, sensor, dev, mot, np.random.default_rng(seed))  # type: ignore[arg-type]
-    v = s.valid
-    obs = Observations.from_raw(
-        s.ranges[v], cal.alpha(np.broadcast_to(dev, v.shape))[v], cal.beta(np.broadcast_to(mot, v.shape))[v]
-    )
-    centres = [np.array(c) for c, _ in SPHERES]
-    art = Artefact.from_dict(
-        {
-            "planes": True,
-            "spheres": [{"diameter_m": d} for _, d in SPHERES],
-            "distances_m": [
-                {"a": i, "b": j, "distance_m": float(np.linalg.norm(centres[i] - centres[j]))}
-                for i in range(3)
-                for j in range(i + 1, 3)
-            ],
-        }
-    )
-    return obs, art
 
 
 def lms1xx(scale: float) -> LMS1xxSensor:
@@ -74,7 +41,7 @@ def test_the_spot_scale_is_recovered_from_the_spheres_within_its_uncertainty(sca
     m = RigModel()
     o, d = m.rays(obs.alpha, obs.beta)
     got = estimate_spot_scale(
-        o, d, m.geometric_range(obs.l), [(np.array(c), dia / 2) for c, dia in SPHERES], 0.008, 0.015, 0.25, 0.012,
+        o, d, m.geometric_range(obs.l), spheres_truth(), 0.008, 0.015, 0.25, 0.012,
         extent=1.5,
     )  # fmt: skip
     assert got is not None and got.beams > 500
@@ -190,7 +157,7 @@ def test_the_disc_cut_limb_echo_recovers_a_noiseless_spot_scale_closer_than_the_
     obs, _ = spheres_sweep(quiet, step_deg=0.5)
     m = RigModel()
     o, d = m.rays(obs.alpha, obs.beta)
-    args = (o, d, m.geometric_range(obs.l), [(np.array(c), dia / 2) for c, dia in SPHERES], 0.008, 0.015, 0.25, 0.012)
+    args = (o, d, m.geometric_range(obs.l), spheres_truth(), 0.008, 0.015, 0.25, 0.012)
     disc, endless = estimate_spot_scale(*args, extent=1.5), estimate_spot_scale(*args)
     assert disc is not None and endless is not None and disc.beams == endless.beams > 500
     assert endless.scale < disc.scale < 1.0
