@@ -1,7 +1,8 @@
 """The spot scale from sphere limbs (issue 12; lrms/calibration/optics.py) with the limb echo's
 spot an endless Gaussian (``extent=inf``, calibrations before the disc cut) and cut to the disc of
 ``BeamOptics.extent`` = 1.5 spot radii (as the simulator's spot and the footprint fit's
-energy-weighted family): three spheres before a wall, a step-and-scan sweep by the nominal rig, the
+energy-weighted family): three spheres before a wall, a step-and-scan sweep by the nominal rig
+(``sim.scene.spot_spheres.spheres_sweep``, the scene of tests/core/test_calibration_optics.py), the
 rig and the spheres' centres known, so only the limb-echo model differs.
 
     python -m bench.bench_spot_scale_disc [--scales 1.0 1.6] [--sub-rays 32 128] [--seeds 1]
@@ -16,33 +17,11 @@ import argparse
 import math
 import time
 
-import numpy as np
-
-from lrms.calibration import Observations
 from lrms.calibration.optics import estimate_spot_scale
-from lrms.kinematics import RigCalibration, RigModel
-from sim.scene import LMS1xxSensor, Plane, Scene, Sphere, cast_beams, lms1xx_device_angles
+from lrms.kinematics import RigModel
+from sim.scene import LMS1xxSensor
 from sim.scene.lms1xx import Footprint
-
-D = np.deg2rad
-#: The spheres of tests/core/test_calibration_optics.py (centre, diameter).
-SPHERES = (((0.6, 1.5, -0.3), 0.2), ((-0.8, 2.4, 0.45), 0.2), ((0.3, 3.4, -0.2), 0.25))
-
-
-def sweep(sensor: LMS1xxSensor, seed: int, step_deg: float) -> Observations:
-    scene = Scene("spheres")
-    for i, (c, d) in enumerate(SPHERES):
-        scene.add(Sphere(np.array(c), d / 2), remission=0.8, name=f"sphere{i}")
-    scene.add(Plane((0.0, 4.5, 0.0), (0.0, -1.0, 0.0)), remission=0.5, name="back_wall")
-    cal = RigCalibration()
-    dev = lms1xx_device_angles(0.25)
-    dev = dev[(dev > D(45)) & (dev < D(135))]
-    mot = D(np.arange(-25.0, 25.0, step_deg))[:, None]
-    s = cast_beams(scene, cal, sensor, dev, mot, np.random.default_rng(seed))
-    v = s.valid
-    return Observations.from_raw(
-        s.ranges[v], cal.alpha(np.broadcast_to(dev, v.shape))[v], cal.beta(np.broadcast_to(mot, v.shape))[v]
-    )
+from sim.scene.spot_spheres import spheres_sweep, spheres_truth
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -55,13 +34,13 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     quiet = {} if a.noisy else dict(sigma_typical=0.0, sigma_max=0.0, spread_noise=0.0, sigma_alpha=0.0, sigma_beta=0.0)
     m = RigModel()
-    spheres = [(np.array(c), d / 2) for c, d in SPHERES]
+    spheres = spheres_truth()
     for sub in a.sub_rays:
         for scale in a.scales:
             for seed in a.seeds:
                 t0 = time.perf_counter()
                 fp = Footprint(exit_diameter_m=0.008 * scale, divergence_rad=0.015 * scale, sub_rays=sub)
-                obs = sweep(LMS1xxSensor(footprint=fp, **quiet), seed, a.step)  # type: ignore[arg-type]
+                obs, _ = spheres_sweep(LMS1xxSensor(footprint=fp, **quiet), seed, a.step)  # type: ignore[arg-type]
                 o, d = m.rays(obs.alpha, obs.beta)
                 rng = m.geometric_range(obs.l)
                 row = [f"sub_rays {sub:4d} true {scale:.2f} seed {seed}"]

@@ -11,49 +11,16 @@ import logging
 import numpy as np
 import pytest
 
-from lrms.calibration import Artefact, CalibrationError, CalibrationOptions, CalibrationResult, Observations, calibrate
+from lrms.calibration import CalibrationError, CalibrationOptions, CalibrationResult, calibrate
 from lrms.calibration.optics import MIN_LIMB_BEAMS, estimate_spot_scale, fit_spot_scale, limb_echo
 from lrms.calibration.result import ENDLESS_SCALE_U
 from lrms.cylinder import BeamOptics
-from lrms.kinematics import RigCalibration, RigModel
-from sim.scene import LMS1xxSensor, Plane, Scene, SensorModel, Sphere, cast_beams, lms1xx_device_angles
+from lrms.kinematics import RigModel
+from sim.scene import LMS1xxSensor, SensorModel
 from sim.scene.lms1xx import Footprint
+from sim.scene.spot_spheres import spheres_sweep, spheres_truth
 
-D = np.deg2rad
-#: Three spheres ahead of the rig (centre, diameter); their centre distances are known.
-SPHERES = (((0.6, 1.5, -0.3), 0.2), ((-0.8, 2.4, 0.45), 0.2), ((0.3, 3.4, -0.2), 0.25))
 TRUE_SCALE = 1.6
-
-
-def spheres_sweep(sensor: object, seed: int = 1, step_deg: float = 0.3) -> tuple[Observations, Artefact]:
-    """A step-and-scan sweep (-25..25 deg, 0.3 deg steps, beams 45..135 deg) of three spheres before
-    a wall by the nominal rig: few beams, so the footprint simulation stays quick."""
-    scene = Scene("spheres")
-    for i, (c, d) in enumerate(SPHERES):
-        scene.add(Sphere(np.array(c), d / 2), remission=0.8, name=f"sphere{i}")
-    scene.add(Plane((0.0, 4.5, 0.0), (0.0, -1.0, 0.0)), remission=0.5, name="back_wall")
-    cal = RigCalibration()
-    dev = lms1xx_device_angles(0.25)
-    dev = dev[(dev > D(45)) & (dev < D(135))]
-    mot = D(np.arange(-25.0, 25.0, step_deg))[:, None]
-    s = cast_beams(scene, cal, sensor, dev, mot, np.random.default_rng(seed))  # type: ignore[arg-type]
-    v = s.valid
-    obs = Observations.from_raw(
-        s.ranges[v], cal.alpha(np.broadcast_to(dev, v.shape))[v], cal.beta(np.broadcast_to(mot, v.shape))[v]
-    )
-    centres = [np.array(c) for c, _ in SPHERES]
-    art = Artefact.from_dict(
-        {
-            "planes": True,
-            "spheres": [{"diameter_m": d} for _, d in SPHERES],
-            "distances_m": [
-                {"a": i, "b": j, "distance_m": float(np.linalg.norm(centres[i] - centres[j]))}
-                for i in range(3)
-                for j in range(i + 1, 3)
-            ],
-        }
-    )
-    return obs, art
 
 
 def lms1xx(scale: float) -> LMS1xxSensor:
@@ -74,7 +41,7 @@ def test_the_spot_scale_is_recovered_from_the_spheres_within_its_uncertainty(sca
     m = RigModel()
     o, d = m.rays(obs.alpha, obs.beta)
     got = estimate_spot_scale(
-        o, d, m.geometric_range(obs.l), [(np.array(c), dia / 2) for c, dia in SPHERES], 0.008, 0.015, 0.25, 0.012,
+        o, d, m.geometric_range(obs.l), spheres_truth(), 0.008, 0.015, 0.25, 0.012,
         extent=1.5,
     )  # fmt: skip
     assert got is not None and got.beams > 500
@@ -96,6 +63,25 @@ def test_the_spot_scale_is_stored_and_applied_to_the_footprint_optics(scaled_spo
     assert applied.divergence_rad == pytest.approx(0.015 * s)
     assert applied.spot_scale_u == pytest.approx(u / s)
     assert back.beam_optics(None) is None  # the thin beam stays thin
+
+
+def test_a_final_spot_scale_off_the_one_its_rig_assumed_is_warned_about(caplog: pytest.LogCaptureFixture) -> None:
+    """With optics ``calibrate`` adjusts the rig twice: with the nominal spot, then with the scale
+    that gives; when the scale from the second rig is again more than 2 u off the one that rig
+    assumed, it logs a warning. Here (true scale 1.3, seed 1, measured: 1.32 then 0.99, u 0.14)
+    the stored ``assumed_scale`` and ``spot_scale`` differ by more than 2 u, so the warning must name both."""
+    obs, art = spheres_sweep(lms1xx(1.3), seed=1, step_deg=0.8)
+    with caplog.at_level(logging.WARNING, logger="lrms.calibration"):
+        res = calibrate([obs], art, options=CalibrationOptions(optics=BeamOptics()))
+    assert res.optics is not None
+    s, u, assumed = res.optics["spot_scale"], res.optics["spot_scale_u"], res.optics["assumed_scale"]
+    # the scenario's precondition (if the calibration's numerics change, pick another seed or scale)
+    assert abs(s - assumed) > 2 * u, (s, u, assumed)
+    want = (
+        f"spot scale {s:.4g} (u {u:.2g}) differs from the {assumed:.4g} the final adjustment assumed by more than 2 u"
+    )
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert want in warned, warned
 
 
 def test_the_thin_beam_or_no_optics_gives_no_spot_scale() -> None:
@@ -190,7 +176,7 @@ def test_the_disc_cut_limb_echo_recovers_a_noiseless_spot_scale_closer_than_the_
     obs, _ = spheres_sweep(quiet, step_deg=0.5)
     m = RigModel()
     o, d = m.rays(obs.alpha, obs.beta)
-    args = (o, d, m.geometric_range(obs.l), [(np.array(c), dia / 2) for c, dia in SPHERES], 0.008, 0.015, 0.25, 0.012)
+    args = (o, d, m.geometric_range(obs.l), spheres_truth(), 0.008, 0.015, 0.25, 0.012)
     disc, endless = estimate_spot_scale(*args, extent=1.5), estimate_spot_scale(*args)
     assert disc is not None and endless is not None and disc.beams == endless.beams > 500
     assert endless.scale < disc.scale < 1.0

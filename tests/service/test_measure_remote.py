@@ -3,6 +3,7 @@ simulated rig, on 127.0.0.1), over real HTTP."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -33,19 +34,29 @@ def _env(**extra: str) -> dict[str, str]:
     return {**env, "PYTHONPATH": str(REPO), **extra}
 
 
+@contextlib.contextmanager
+def _running(args: list[str], env: dict[str, str], stderr: int = subprocess.PIPE) -> Iterator[subprocess.Popen[str]]:
+    """``lrms ARGS`` started in the background (stdout piped; stderr piped unless told), stopped
+    on leaving if it still runs: SIGTERM, then SIGKILL past 30 s."""
+    proc = subprocess.Popen([*LRMS, *args], cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=stderr, text=True)
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.terminate()
+            try:
+                proc.communicate(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.communicate()
+
+
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     """``lrms serve`` on a free loopback port with an operator token; its base URL once it answers."""
     data = tmp_path_factory.mktemp("serve")
-    proc = subprocess.Popen(
-        [*LRMS, "serve", "--port", "0", "--data", str(data), "--log-level", "warning"],
-        cwd=REPO,
-        env=_env(LRMS_OPERATOR_TOKEN=TOKEN),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.DEVNULL,
-        text=True,
-    )
-    try:
+    serve = ["serve", "--port", "0", "--data", str(data), "--log-level", "warning"]
+    with _running(serve, _env(LRMS_OPERATOR_TOKEN=TOKEN), stderr=subprocess.DEVNULL) as proc:
         url = announced_url(proc)
         end = time.monotonic() + 60
         while True:
@@ -57,9 +68,6 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
             assert proc.poll() is None and time.monotonic() < end, "lrms serve did not come up"
             time.sleep(0.2)
         yield url
-    finally:
-        proc.terminate()
-        proc.communicate(timeout=30)
 
 
 def _measure(args: list[str], env: dict[str, str]) -> subprocess.CompletedProcess[str]:
@@ -120,15 +128,8 @@ def test_refusals_are_one_line_errors(server: str) -> None:
 
 
 def test_ctrl_c_cancels_the_measurement_on_the_service(server: str) -> None:
-    proc = subprocess.Popen(
-        [*LRMS, "measure", "--server", server, "--target", "cylinder", "--speed", "5", "--quiet"],
-        cwd=REPO,
-        env=_env(LRMS_OPERATOR_TOKEN=TOKEN),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    try:
+    measure = ["measure", "--server", server, "--target", "cylinder", "--speed", "5", "--quiet"]
+    with _running(measure, _env(LRMS_OPERATOR_TOKEN=TOKEN)) as proc:
         end = time.monotonic() + 60
         running = None
         while running is None:  # the newest measurement of the 5 deg/s sweep, once it runs
@@ -139,10 +140,6 @@ def test_ctrl_c_cancels_the_measurement_on_the_service(server: str) -> None:
             time.sleep(0.1)
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
     assert proc.returncode == 130 and "interrupted" in err, err
     end = time.monotonic() + 60
     while (state := httpx.get(f"{server}/api/v1/measurements/{running}", timeout=10).json()["state"]) == "running":
@@ -266,21 +263,9 @@ def test_ctrl_c_during_the_request_cancels_once_the_id_is_known(fake: tuple[str,
     cancels that measurement and exits 130."""
     url, svc = fake
     svc.mode = "slow"
-    proc = subprocess.Popen(
-        [*LRMS, "measure", "--server", url, "--target", "cylinder", "--quiet", "--token", TOKEN],
-        cwd=REPO,
-        env=_env(),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    try:
+    with _running(["measure", "--server", url, "--target", "cylinder", "--quiet", "--token", TOKEN], _env()) as proc:
         assert svc.posted.wait(60), proc.communicate()
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
     assert proc.returncode == 130 and "interrupted" in err, err
     assert svc.seen == ["POST /api/v1/measurements", "POST /api/v1/measurements/m7/cancel"], svc.seen
