@@ -9,6 +9,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import httpx
 
@@ -67,8 +68,11 @@ def test_measure_then_replay(tmp_path: Path) -> None:
     )
     assert proc.returncode == 0, proc.stderr
     result = json.loads(proc.stdout)
+    (tmp_path / "result.json").write_text(proc.stdout)  # kept with the MCAP by pytest's tmp_path retention
     u = result["uncertainty"]
-    assert u["d_min_m"] <= 0.1375 <= u["d_max_m"] and abs(result["diameter_m"] - 0.1375) <= 4 * u["std_m"]
+    assert u["d_min_m"] <= 0.1375 <= u["d_max_m"] and abs(result["diameter_m"] - 0.1375) <= 4 * u["std_m"], (
+        accuracy_report(result, tmp_path)
+    )
     assert "%" in proc.stderr  # the progress bar
     assert out.stat().st_size > 100_000 and plot.read_bytes()[:4] == b"\x89PNG"
     msgs, _ = mcaplog.read_log(out)
@@ -78,6 +82,22 @@ def test_measure_then_replay(tmp_path: Path) -> None:
     replayed = json.loads(rep.stdout)
     assert replayed["reproduced"] is True and replayed["max_abs_diff"] <= 1e-9
     assert replayed["result"]["diameter_m"] == result["diameter_m"]
+
+
+def accuracy_report(result: dict[str, Any], kept: Path) -> str:
+    """What a failed accuracy check needs to be judged: the error against the fit's type A
+    ``std_m``, the sweep's scan and timing figures, and where the result, MCAP and cloud are kept."""
+    u, sweep, clock = result["uncertainty"], result["sweep"], result["clock"]
+    err = result["diameter_m"] - 0.1375
+    return (
+        f"diameter {result['diameter_m'] * 1e3:.3f} mm, error {err * 1e3:+.3f} mm = {err / u['std_m']:+.2f} std_m "
+        f"(std_m {u['std_m'] * 1e3:.3f} mm, interval [{u['d_min_m'] * 1e3:.2f}, {u['d_max_m'] * 1e3:.2f}] mm); "
+        f"{result['n_inliers']} inliers, chi2/dof {result['chi2_dof']:.3f}; scans in sweep {sweep['scans_in_sweep']}, "
+        f"missing {sweep['scans_missing']}; clock drift {clock['drift_ppm']:.1f} ppm, receive jitter "
+        f"{clock['residual_jitter_s'] * 1e3:.1f} ms, resets {clock['resets']}; motor timing jitter "
+        f"{sweep['motor_timing_jitter_s']} s ({sweep['motor_time_source']}); kept in {kept} "
+        f"(result.json, run.mcap, {result.get('cloud_path')})"
+    )
 
 
 def test_bad_config_and_bad_replay_file_are_one_line_errors(tmp_path: Path) -> None:

@@ -1,0 +1,94 @@
+"""The fit's type A ``std_m`` on the sweep of ``tests/service/test_cli.py::test_measure_then_replay``,
+offline: the default simulated cylinder (``seed003``, ideal sensor, sigma_l 11.67 mm), -20..70 deg
+at 20 deg/s, every beam at its true motor angle (no host, no clock model, no timing error at all).
+
+Why: that test's accuracy check (``|d - 0.1375| <= 4 std_m``) failed now and then on a loaded
+machine. The timing was not it (docs/service.md, "Known limits"): replayed with the scanner clock's
+offset moved 20 ms, its drift set to +-500 ppm or +-5 ms of jitter on every motor sample, a logged
+failing-class sweep's diameter moved by 0.02, 0.07 and 0.09 mm. What moves is ``std_m`` itself:
+40 of these offline sweeps (seeds 3-42, scan phase and noise from the seed) gave diameters
+scattered by 0.445 mm, while ``std_m`` ranged from 0.107 to 0.891 mm, small exactly when the fit
+came out small (correlation of error and ``std_m`` 0.65): the linearised covariance of the
+grazing-weighted fit (``lrms.cylinder.bias.grazing_weighted_fit``) credits a beam that happens to
+meet the fitted surface near grazing (cos(incidence) < 0.1, where that module says the linear
+model fails) with most of the radius's information. Seed 13 is such a sweep (``std_m`` 0.107 mm,
+error -0.24 mm): an error of the sweeps' usual size there is 4 ``std_m``.
+
+The check below is what the fit should give; it fails until the fit's covariance is fixed (its
+owner's module), hence ``strict`` xfail: whoever fixes it sees this pass and removes the mark.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from service import fitting
+from service.config import load_config
+from service.models import MeasurementRequest
+from service.sweep import MappedSweep
+from sim.scene import get_scene, make_sensor
+from sim.scene.sensor import continuous_sweep_cloud
+
+TRUE_D = 0.1375
+SPEED = math.radians(20.0)
+#: the diameters' scatter over 40 such sweeps (seeds 3-42), measured (see the module docstring)
+SCATTER_M = 0.445e-3
+
+
+def offline_sweep(seed: int) -> MappedSweep:
+    """The default rig's constant-speed cylinder sweep, each beam at its true motor angle."""
+    config = load_config(None)
+    cal = config.calibration
+    rng = np.random.default_rng(seed)
+    phase = rng.uniform(0.0, SPEED / 25.0)  # where the first scan falls: random, as on the rig
+    start, stop = float(cal.motor_angle(math.radians(-20.0))), float(cal.motor_angle(math.radians(70.0)))
+    _, s = continuous_sweep_cloud(get_scene("seed003"), cal, make_sensor("ideal"), start + phase, stop, SPEED, rng)
+    valid = s.valid
+    ranges = s.ranges[valid]
+    alpha = cal.alpha(np.broadcast_to(s.device_angle, valid.shape)[valid])
+    beta = cal.beta(s.motor_angle[valid])
+    scans = np.broadcast_to(np.arange(valid.shape[0])[:, None], valid.shape)[valid]
+    speed = np.full(ranges.shape, SPEED)
+    return MappedSweep(
+        points=cal.rig.forward(ranges, alpha, beta, speed),
+        ranges=ranges,
+        alpha=alpha,
+        beta=beta,
+        scan_index=scans.astype(np.int64),
+        beam_time_s=np.zeros(ranges.shape),
+        t_ref_ns=0,
+        beams_total=int(valid.size),
+        beams_no_echo=int(np.count_nonzero(~valid)),
+        beams_out_of_range=0,
+        beams_without_motor=0,
+        beams_outside_sweep=0,
+        motor_speed=speed,
+        rig=cal.rig,
+    )
+
+
+def fit(seed: int) -> dict[str, float]:
+    config = load_config(None)
+    result = fitting.fit(offline_sweep(seed), MeasurementRequest(target="cylinder"), config)
+    return {"error_m": result["diameter_m"] - TRUE_D, "std_m": result["uncertainty"]["std_m"]}
+
+
+def test_a_typical_offline_sweep_is_within_its_std_m() -> None:
+    """The harness itself: a sweep with an ordinary ``std_m`` measures the cylinder within it
+    (seed 5: error +0.35 mm, ``std_m`` 0.65 mm)."""
+    r = fit(5)
+    assert 0.3e-3 <= r["std_m"] <= 1.0e-3, r
+    assert abs(r["error_m"]) <= 2 * r["std_m"], r
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="the fit's linearised covariance collapses on a near-grazing beam (std_m 0.107 mm against a "
+    "0.445 mm scatter); lrms/cylinder/bias.py, not fixed here",
+)
+def test_std_m_does_not_collapse_below_half_the_diameters_scatter() -> None:
+    r = fit(13)
+    assert r["std_m"] >= SCATTER_M / 2, r
