@@ -26,9 +26,16 @@ _COS_FLOOR = 0.01
 #: Beams (at most; a fixed random subset of more) on which :func:`second_order_bias` is evaluated.
 #: The bias is a ratio of two sums over the beams (``A^-1 sum J_i tr(H_i C)``, ``C`` the whole
 #: fit's covariance), so a subset estimates it with a relative scatter of about ``1/sqrt(n)``:
-#: below a percent of a bias of a few micrometres, where its eleven passes over every beam of a
-#: 1M-point cloud took a second.
-BIAS_WORK = 20_000
+#: about 2 % of a diameter bias of about 10 um at 3000 (0.2 um), where its eleven passes over
+#: every beam of a 1M-point cloud took a second (20 000 until issue 15's sixth round).
+BIAS_WORK = 3_000
+#: LM steps of each round of :func:`grazing_weighted_fit` before the last, on a small cloud's
+#: beams (all of them): the weights of the next round are all they feed, and those move little
+#: with the last steps (200 until issue 15's sixth round; docs/cylinder.md section 6).
+GRAZING_EARLY_STEPS = 4
+#: Beams (at most) on which :func:`smoothed_covariance` takes its nodes' change: kept at 20 000,
+#: not :data:`BIAS_WORK`, since one grazing beam can carry most of the information a subset would miss.
+SMOOTH_WORK = 20_000
 #: ``kappa`` of the unscented points over which :func:`smoothed_covariance` averages (1: the nodes
 #: at ``sqrt(6)`` standard deviations, the centre weighted 1/6).
 SMOOTH_KAPPA = 1.0
@@ -101,7 +108,12 @@ def grazing_weighted_fit(
             prob = beams if whole else LosProblem(part)
             centre = (sub_pts if whole else sub_pts[work]).mean(axis=0)
             # a large cloud's last round starts next to its optimum: a few LM steps suffice
-            nfev = 200 if part.ranges.size <= 10_000 or k < rounds - 1 else 4
+            # (the rounds before it: all beams of a small cloud, GRAZING_EARLY_STEPS steps; a
+            # subset of a large one, solved to the end, since its last round's steps are few)
+            if k < rounds - 1:
+                nfev = GRAZING_EARLY_STEPS if whole else 200
+            else:
+                nfev = 200 if part.ranges.size <= 10_000 else 4
             weighted = prob.reweighted(grazing_sigmas(cyl, part, sigma_lat))
             cyl, _ = levenberg_marquardt(weighted, cyl.with_point_near(centre), max_iter=nfev)
             cyl = cyl.with_point_near(centre)
@@ -156,15 +168,15 @@ def smoothed_covariance(
     takes that information away. The covariance at the solution alone then ranged 0.17-0.82 mm
     on the diameter between replicas of one scene whose scatter was 0.46 mm, the smallest values
     on the fits that were most off (docs/cylinder.md, "the covariance near the silhouette").
-    More than :data:`BIAS_WORK` beams: the nodes' change is taken on a fixed random subset of
+    More than :data:`SMOOTH_WORK` beams: the nodes' change is taken on a fixed random subset of
     that many and scaled by the subset's share (the covariance goes like 1 / N).
     """
     centre = weighted_sandwich(beams, rays, cyl, sigma_lat, frame)
     n = rays.ranges.shape[0]
     part, prob, scale = rays, beams, 1.0
-    if n > BIAS_WORK:
-        part = rays.subset(np.sort(np.random.default_rng(5).choice(n, BIAS_WORK, replace=False)))
-        prob, scale = LosProblem(part), BIAS_WORK / n
+    if n > SMOOTH_WORK:
+        part = rays.subset(np.sort(np.random.default_rng(5).choice(n, SMOOTH_WORK, replace=False)))
+        prob, scale = LosProblem(part), SMOOTH_WORK / n
     here = centre if part is rays else weighted_sandwich(prob, part, cyl, sigma_lat, frame)
     lam, vec = np.linalg.eigh(0.5 * (centre + centre.T))
     steps = (np.sqrt((5.0 + SMOOTH_KAPPA) * np.maximum(lam, 0.0)) * vec).T

@@ -75,6 +75,16 @@ class Cylinder:
         object.__setattr__(self, "direction", d / nd)
         object.__setattr__(self, "radius", float(self.radius))
 
+    @classmethod
+    def trusted(cls, point: FloatArray, direction: FloatArray, radius: float) -> Cylinder:
+        """A cylinder from parameters the caller has checked (float64 ``(3,)`` arrays, a unit
+        direction, a finite radius > 0): no validation (the fits' inner loops build one per step)."""
+        new = object.__new__(cls)
+        object.__setattr__(new, "point", point)
+        object.__setattr__(new, "direction", direction)
+        object.__setattr__(new, "radius", float(radius))
+        return new
+
     @property
     def diameter(self) -> float:
         return 2.0 * self.radius

@@ -74,16 +74,22 @@ MULTISTART = (-0.2, -0.1, 0.1, 0.2)
 #: Inliers (at most; a random subset of larger sets) on which the starts are compared.
 MULTISTART_WORK = 2000
 #: Inliers above which the winner's final solve on all of them is a few LM steps only: it starts
-#: next to its optimum, and :func:`~lrms.cylinder.bias.grazing_weighted_fit` refits from it.
+#: next to its optimum. (When :func:`~lrms.cylinder.bias.grazing_weighted_fit` refits from it, the
+#: winner is not solved on all inliers at all: ``polish=False`` of :func:`_multistart`.)
 MULTISTART_FULL_STEPS = (10_000, 4)
 #: LM steps after which an extra start must have beaten the best cost so far to be continued. Not
 #: a real screen any more: at 2 steps the replicas of seed 003's full sweep found a lower minimum
 #: in 7 of 200 cases against 83 of 200 with full solves (diameter moves up to 0.39 mm, std
 #: 0.058 mm of a 0.23 mm spread), so every start is solved to its end (the 10k fit's ~15 %).
 MULTISTART_SCREEN = 20
+#: Beams (at most; a subset of more) of the line-of-sight fit's rounds before the multi-start
+#: (:func:`_los_fit`): they select the inliers and give the starts; the accuracy comes from the
+#: fits on all inliers after them. (3000 saved a sixth of a 10k fit's evaluations but moved a
+#: 1M cloud's radius by 5 um through the multi-start's start and the winner's inliers.)
+LOS_WORK = 5000
 
 
-def _multistart(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: DetectOptions) -> CylinderFit:
+def _multistart(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: DetectOptions, polish: bool = True) -> CylinderFit:
     """Restart the line-of-sight fit from radii around the solution and keep the lowest cost.
 
     The range residual of a beam near the silhouette has a kink where the beam becomes tangent
@@ -93,7 +99,9 @@ def _multistart(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: DetectOption
     (a random subset of at most :data:`MULTISTART_WORK` of them), the winner is refined on all.
     Each extra start gets :data:`MULTISTART_SCREEN` LM steps (:func:`_screened_start`; about a
     full solve since a 2-step screen was measured to miss most lower minima) and a fresh solve
-    where that leads below the best cost so far.
+    where that leads below the best cost so far. ``polish=False``: the winner's inliers are
+    selected on all candidates but it is not solved on them (a refit from it follows: the
+    grazing-weighted fit, whose first round solves on the same inliers).
     """
     idx = fit.inliers
     work = MULTISTART_WORK
@@ -112,7 +120,8 @@ def _multistart(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: DetectOption
             if cost < best_cost:
                 best_cyl, best_cost = cyl, cost
     big, steps = MULTISTART_FULL_STEPS
-    return refine_cylinder(pts, best_cyl, rays=rays, max_rounds=1, max_nfev=steps if idx.size > big else 200)
+    nfev = (steps if idx.size > big else 200) if polish else 0
+    return refine_cylinder(pts, best_cyl, rays=rays, max_rounds=1, max_nfev=nfev)
 
 
 def _screened_start(prob: LosProblem, start: Cylinder, best_cost: float) -> tuple[Cylinder, float]:
@@ -126,13 +135,15 @@ def _screened_start(prob: LosProblem, start: Cylinder, best_cost: float) -> tupl
     return cyl, float(lin.cost)
 
 
-def _los_fit(pts: FloatArray, rays: Rays, start: Cylinder, opt: DetectOptions, multistart: bool = True) -> CylinderFit:
+def _los_fit(
+    pts: FloatArray, rays: Rays, start: Cylinder, opt: DetectOptions, multistart: bool = True, polish: bool = True
+) -> CylinderFit:
     """The line-of-sight fit from ``start`` on candidate points (their beams ``rays``): inlier
     selection from ``start``, then (``multistart``) :func:`_multistart` around its solution; else
     the last solve may be on a subset of the inliers (a start for the selection by the scene
-    model, which refits)."""
-    fit = refine_cylinder(pts, start, rays=rays, max_rounds=4, final_full=False, work_size=5000)
-    return _multistart(pts, rays, fit, opt) if multistart else fit
+    model, which refits). ``polish``: see :func:`_multistart`."""
+    fit = refine_cylinder(pts, start, rays=rays, max_rounds=4, final_full=False, work_size=LOS_WORK)
+    return _multistart(pts, rays, fit, opt, polish) if multistart else fit
 
 
 def _refine_from(
@@ -143,6 +154,7 @@ def _refine_from(
     opt: DetectOptions,
     multistart: bool = True,
     use: IntArray | None = None,
+    polish: bool = True,
 ) -> CylinderFit:
     """Orthogonal polish near ``initial``, then the final fit on the whole cloud's candidates
     (``multistart``: with :func:`_multistart`; skipped when the selection by the scene model
@@ -169,7 +181,7 @@ def _refine_from(
         cand = on_use((np.abs(rays.ranges - t) < 2.0 * opt.threshold) & (gap < 2.0 * opt.threshold))
         if cand.size < opt.min_inliers:
             raise FitError(f"no cylinder found: only {cand.size} points on the candidate's lines of sight")
-        fit = _los_fit(pts[cand], rays.subset(cand), rough.cylinder, opt, multistart)
+        fit = _los_fit(pts[cand], rays.subset(cand), rough.cylinder, opt, multistart, polish)
     else:
         cand = on_use(np.abs(rough.cylinder.surface_distance(pts)) < 2.0 * opt.threshold)
         if cand.size < opt.min_inliers:
@@ -247,7 +259,12 @@ def _plausible(fit: CylinderFit, pts: FloatArray, start: Cylinder, opt: DetectOp
 
 
 def _select_above_table(
-    pts: FloatArray, rays: Rays, fit: CylinderFit, table: tuple[FloatArray, float, FloatArray], opt: DetectOptions
+    pts: FloatArray,
+    rays: Rays,
+    fit: CylinderFit,
+    table: tuple[FloatArray, float, FloatArray],
+    opt: DetectOptions,
+    polish: bool = True,
 ) -> CylinderFit:
     """Refit on the beams whose predicted first hit on the fitted part lies at least
     :data:`BASE_CLEARANCE` above the table (instead of cutting a slab of the support plane's
@@ -266,7 +283,7 @@ def _select_above_table(
     if cand.size < opt.min_inliers:
         return fit
     try:
-        new = _los_fit(pts[cand], rays.subset(cand), fit.cylinder, opt)
+        new = _los_fit(pts[cand], rays.subset(cand), fit.cylinder, opt, polish=polish)
     except FitError:
         return fit
     if not _radius_ok(new.cylinder, opt) or new.n_inliers < opt.min_inliers:
@@ -323,6 +340,10 @@ def fit_cylinder(
     if rays is not None and rays.ranges.shape[0] != pts.shape[0]:
         raise FitError("rays and points differ in length")
     rr = (rays if rays is not None else rays_from_points(pts, p, nm)) if line_of_sight else None
+    lat = GRAZING_SIGMA if opt.grazing_sigma < 0 else opt.grazing_sigma
+    # the grazing-weighted fit refits the multi-start's winner on all its inliers (not so the
+    # footprint model, which compares its own fit with the thin beam's)
+    polish = optics is not None or lat <= 0
     best: CylinderFit | None = None
     plane: tuple[FloatArray, float] | None = None
     errors: list[str] = []
@@ -352,7 +373,7 @@ def fit_cylinder(
             # with a support plane the selection by the scene model below refits with the
             # multi-start; the attempts need the plain fit only
             later = pl is not None and initial is None
-            fit = _refine_from(pts, start, line_of_sight, rr, opt, not later, use=use)
+            fit = _refine_from(pts, start, line_of_sight, rr, opt, not later, use=use, polish=polish)
         except FitError as exc:
             errors.append(str(exc))
             continue
@@ -374,7 +395,7 @@ def fit_cylinder(
         if rr is not None and initial is None:
             table = table_height(pts, best, plane, opt)
             if table is not None:
-                chosen = _select_above_table(pts, rr, best, table, opt)
+                chosen = _select_above_table(pts, rr, best, table, opt, polish)
                 selected = chosen is not best  # else the refit failed: the plain fit is kept
                 best = chosen
                 up, height, origin = table
@@ -382,7 +403,7 @@ def fit_cylinder(
     start, use, later = best_from
     if later and not selected and rr is not None:  # no table under the part, or its refit failed
         with suppress(FitError):  # else keep the plain fit
-            best = _refine_from(pts, start, True, rr, opt, use=use)
+            best = _refine_from(pts, start, True, rr, opt, use=use, polish=polish)
     footprint_won = False
     if rr is not None and optics is not None:
         from lrms.cylinder.footprint import footprint_fit  # scipy.special: only the footprint model needs it
@@ -391,7 +412,6 @@ def fit_cylinder(
         footprint_won = fp.extra.get("edge_mode_first", -1.0) >= 0
         best = fp if footprint_won else replace(best, extra=fp.extra)  # the thin beam explains the data best
     if rr is not None and not footprint_won:
-        lat = GRAZING_SIGMA if opt.grazing_sigma < 0 else opt.grazing_sigma
         best = grazing_weighted_fit(pts, rr, best, lat, radius_range=opt.radius_range)
         if opt.bias_correction:
             best = bias_corrected(best, rr.subset(best.inliers))

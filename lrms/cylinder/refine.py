@@ -341,7 +341,7 @@ def refine_cylinder(
     def solve_on(sel: IntArray, c: Cylinder) -> Cylinder:
         if sel.size < 6:
             raise FitError(f"too few inliers left for a cylinder fit ({sel.size})")
-        out, _ = levenberg_marquardt(problem(sel), c, max_iter=max_nfev)
+        out = levenberg_marquardt(problem(sel), c, max_iter=max_nfev)[0] if max_nfev > 0 else c
         out = out.with_point_near((pts if sel.size == pts.shape[0] else pts[sel]).mean(axis=0))
         if out.radius <= 0:
             raise FitError("cylinder refinement gave a non-positive radius")
