@@ -295,7 +295,21 @@ def first_hit_range(
     front's quantile below, never from a previous solution (a warm start moved 2 beams of a test
     cloud to another root, 7-9 mm away).
     """
-    target = np.minimum(tau, 0.999 * c)
+    return _first_newton(x0, t_ca, cos_axis, radius, s0, sd, np.minimum(tau, 0.999 * c), c)
+
+
+def _first_newton(
+    x0: FloatArray,
+    t_ca: FloatArray,
+    cos_axis: FloatArray,
+    radius: float | FloatArray,
+    s0: float,
+    sd: float,
+    target: FloatArray,
+    c: FloatArray,
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`first_hit_range` at the share ``target`` of each beam, ``radius`` a number or one per
+    beam (the Jacobian's columns solved in one call: each beam's iteration is its own)."""
     p = np.sqrt(np.maximum(1.0 - cos_axis * cos_axis, 1e-12))
     depth = radius / p  # range extent of the part's front along the beam
     ys = (s0 + sd * np.maximum(t_ca, 0.0)) * np.abs(cos_axis) / p
@@ -305,11 +319,13 @@ def first_hit_range(
     big_t = np.clip(t_ca - depth + 0.5 * (1.0 - np.minimum(target / np.maximum(c, 1e-12), 1.0)) * depth, lo, hi)
     # safeguarded Newton on the beams not yet converged only (most take 3-5 steps, a few bisect)
     act = np.arange(big_t.size)
+    per_beam = None if np.ndim(radius) == 0 else np.asarray(radius, dtype=np.float64)
     for _ in range(60):
         if act.size == 0:
             break
         bt = big_t[act]
-        f, fp = _first_share(bt, x0[act], t_ca[act], cos_axis[act], radius, s0, sd)
+        rad = radius if per_beam is None else per_beam[act]
+        f, fp = _first_share(bt, x0[act], t_ca[act], cos_axis[act], rad, s0, sd)
         f = f - target[act]
         la = np.where(f < 0, bt, lo[act])
         ha = np.where(f >= 0, bt, hi[act])
@@ -327,13 +343,16 @@ def _first_share(
     x0: FloatArray,
     t_ca: FloatArray,
     cos_axis: FloatArray,
-    radius: float,
+    radius: float | FloatArray,
     s0: float,
     sd: float,
 ) -> tuple[FloatArray, FloatArray]:
-    """``F(T)`` of :func:`first_hit_range` (the share of the spot met at a range ``<= T``) and ``dF/dT``."""
+    """``F(T)`` of :func:`first_hit_range` (the share of the spot met at a range ``<= T``) and ``dF/dT``
+    (``radius`` a number or one per beam)."""
     p = np.sqrt(np.maximum(1.0 - cos_axis * cos_axis, 1e-12))
     depth = radius / p
+    if np.ndim(radius):
+        radius = np.asarray(radius, dtype=np.float64)[:, None]
     ys = (s0 + sd * np.maximum(t_ca, 0.0)) * np.abs(cos_axis) / p
     eta = _GH_X[None, :]
     h = _GH_W[None, :]
@@ -444,6 +463,7 @@ def _first_jacobian(
     fp0 = np.maximum(fp0, 1.0)
     r0 = _first_rows(g, big_t, slope, tau, rays, optics)
     jac = np.empty((r0.size, theta.size))
+    cols = []
     for j in range(theta.size):
         th = theta.copy()
         th[j] += _JAC_STEP[j]
@@ -451,11 +471,21 @@ def _first_jacobian(
         tj = float(expit(th[5]))
         gj = _geometry(aj, wj, float(rj), rays, optics, 1.0) if j < 5 else g
         fj, _ = _first_share(big_t, gj.x0, gj.t_ca, gj.cos_axis, gj.radius, gj.s0, gj.sd)
-        tt = big_t - (fj - np.minimum(tj, 0.999 * gj.c) - f0) / fp0
-        if flat.size:
-            tt[flat], _ = first_hit_range(
-                gj.x0[flat], gj.t_ca[flat], gj.cos_axis[flat], gj.radius, gj.s0, gj.sd, tj, gj.c[flat]
-            )
+        cols.append((gj, tj, big_t - (fj - np.minimum(tj, 0.999 * gj.c) - f0) / fp0))
+    if flat.size:  # every column's flat beams in one Newton solve
+        tt_flat, _ = _first_newton(
+            np.concatenate([gj.x0[flat] for gj, _, _ in cols]),
+            np.concatenate([gj.t_ca[flat] for gj, _, _ in cols]),
+            np.concatenate([gj.cos_axis[flat] for gj, _, _ in cols]),
+            np.repeat([gj.radius for gj, _, _ in cols], flat.size),
+            g.s0,
+            g.sd,
+            np.concatenate([np.minimum(tj, 0.999 * gj.c[flat]) for gj, tj, _ in cols]),
+            np.concatenate([gj.c[flat] for gj, _, _ in cols]),
+        )
+        for j, (_, _, tt) in enumerate(cols):
+            tt[flat] = tt_flat[j * flat.size : (j + 1) * flat.size]
+    for j, (gj, tj, tt) in enumerate(cols):
         sj = slope
         if optics.share_u > 0.0:
             _, fpj = _first_share(tt, gj.x0, gj.t_ca, gj.cos_axis, gj.radius, gj.s0, gj.sd)
@@ -780,10 +810,12 @@ def _held(
     full = best.theta.copy()
     full[4] += offset
 
+    warm = _Warm() if best.mode == "first" else None  # the Jacobian is asked where fun just was
+
     def fun(p: FloatArray) -> FloatArray:
         t = full.copy()
         t[idx] = p
-        return _residuals(t, frame, best.rays, optics, best.mode)
+        return _residuals(t, frame, best.rays, optics, best.mode, 1.0, warm)
 
     jac: object = "2-point"
     if best.mode == "first":
@@ -791,7 +823,7 @@ def _held(
         def jac_fn(p: FloatArray) -> FloatArray:
             t = full.copy()
             t[idx] = p
-            return _first_jacobian(t, frame, best.rays, optics)[:, idx]
+            return _first_jacobian(t, frame, best.rays, optics, warm)[:, idx]
 
         jac = jac_fn
     out = least_squares(
