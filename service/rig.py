@@ -22,10 +22,9 @@ from urllib.parse import urlsplit, urlunsplit
 
 import numpy as np
 
-import service.simdevices  # noqa: F401  (registers the sim:// device URLs)
 from drivers.lms100.client import ScannerClient
 from drivers.servo import cia402
-from drivers.url import open_device
+from drivers.url import open_device, register
 from lrms.errors import FitError
 from lrms.kinematics import RigCalibration
 from service import fitting, mcaplog
@@ -40,6 +39,12 @@ if TYPE_CHECKING:  # imported where a calibration is applied: it loads lrms.cali
     from service.calstore import StoredCalibration
 
 log = logging.getLogger(__name__)
+
+# the sim:// device URLs, by dotted path: the simulator's device code (the scene, the scanner's
+# ray-caster) loads only where a sim:// URL is opened, not in every rig process (a [sim] rig with
+# process = true opens the simulated rig's tcp:// and socketcand:// URLs)
+register("scanner", "sim", "service.simdevices:open_sim_scanner")
+register("motor", "sim", "service.simdevices:open_sim_motor")
 
 
 def open_scanner(url: str, **kw: Any) -> ScannerClient:
@@ -276,8 +281,6 @@ class Rig:
             # them to the drive (a CiA 402 drive's software position limits)
             self.motor = open_device("motor", self.motor_url, config=cfg.motor.drive_config())
             self._configure_scanner()
-            if self.fit_process:
-                self._start_fit_pool()
         except BaseException:
             self.close()
             raise
@@ -413,7 +416,7 @@ class Rig:
 
     def _start_fit_pool(self) -> None:
         """The fit worker: spawned (a fork of this threaded process could inherit held locks) and
-        warmed up (imports) at once, so the first measurement does not wait for it."""
+        warmed up (imports) at once, while the first sweep runs, so its fit does not wait for it."""
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
@@ -471,6 +474,11 @@ class Rig:
                 },
             )
             logf.log_world_pose(now_ns(), cfg.calibration.world_from_rig)
+            if self.fit_process and self._fit_pool is None:
+                # the fit worker starts with the first sweep, not at start-up: its interpreter and
+                # imports (~0.3 s CPU) would compete with the rig's and the service's start on a
+                # busy machine, and the sweep's seconds cover them
+                self._start_fit_pool()
             recorder = SweepRecorder(fitting.rig_kinematics(cfg, calibration), logf, dialect)
 
             def on_event(kind: str, data: dict[str, Any]) -> None:
