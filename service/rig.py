@@ -281,6 +281,8 @@ class Rig:
             # them to the drive (a CiA 402 drive's software position limits)
             self.motor = open_device("motor", self.motor_url, config=cfg.motor.drive_config())
             self._configure_scanner()
+            if self.fit_process:
+                self._start_fit_pool()
         except BaseException:
             self.close()
             raise
@@ -416,7 +418,8 @@ class Rig:
 
     def _start_fit_pool(self) -> None:
         """The fit worker: spawned (a fork of this threaded process could inherit held locks) and
-        warmed up (imports) at once, while the first sweep runs, so its fit does not wait for it."""
+        warmed up (imports) at start-up, so the first measurement does not wait for it and its start-up
+        does not compete with a sweep."""
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
@@ -474,11 +477,6 @@ class Rig:
                 },
             )
             logf.log_world_pose(now_ns(), cfg.calibration.world_from_rig)
-            if self.fit_process and self._fit_pool is None:
-                # the fit worker starts with the first sweep, not at start-up: its interpreter and
-                # imports (~0.3 s CPU) would compete with the rig's and the service's start on a
-                # busy machine, and the sweep's seconds cover them
-                self._start_fit_pool()
             recorder = SweepRecorder(fitting.rig_kinematics(cfg, calibration), logf, dialect)
 
             def on_event(kind: str, data: dict[str, Any]) -> None:
