@@ -13,8 +13,16 @@ grids, the plane's piece test in numpy, the footprint model and its scipy.specia
 "measure: until the sweep starts"
 runs ``lrms measure`` on the default simulated rig (at 45 deg/s, so the run is short) and
 takes the time from starting the process to the raw log's measurement record, which the rig
-process writes just before it commands the approach move (``service.rig.Rig._measure``); its
-CPU column is empty (the work is spread over four processes). "measure --server: until the sweep
+process writes just before it enables the drive and commands the approach move
+(``service.rig.Rig._measure``, then ``service.sweep.run_sweep``); its CPU column is the CPU time
+of the whole run (sweep and fit included) of the command and the processes waited for below it
+(the rig process and the simulated rig; the kernel adds a waited-for child's time to its
+parent's ``wait4`` usage; the fit worker counts only if reaped before the rig process exits), so
+its difference between two trees is mostly start-up work. Below the
+table, "first motion" is the time from starting the process to the first motor sample of the raw
+log (its host sample time) whose shaft angle differs from the log's first sample by more than
+1e-4 rad (0.006 deg): the drive enabled and the approach move under way, as the driver read it
+back over the bus. "measure --server: until the sweep
 starts" is the same time for ``lrms measure --server URL`` against an ``lrms serve`` of this tree
 that the bench starts once on 127.0.0.1 (the rig already up; the raw log fetched with ``--out``);
 its CPU column is the client process's own. With ``--baseline-tree`` (another
@@ -48,6 +56,15 @@ FIT_IMPORTS = (
     "lrms.budget, lrms.covariance, lrms.cylinder, lrms.uncertainty"
 )
 MEASURE_ARGS = ["measure", "--target", "cylinder", "--quiet", "--speed", "45"]
+#: What ``lrms measure`` imports before it starts the rig process; the other "measure:" rows are
+#: the imports of the service (on a thread of the command), of the rig process, and the simulated
+#: rig's imports and set-up (scene, servers bound, closed again): its parts, each a process.
+MEASURE_FIRST = "import service.cli.main, service.cli.measure, service.config, service.models, service.rigproc"
+SIM_BUILD = "import sim.rig, sim.drive.socketcand; sim.rig.SimulatedRig().close()"
+#: Seconds from starting the command to the first motion in its raw log, per case name (filled by
+#: the measure cases: :func:`_sweep_start`).
+MOTION: dict[str, list[float]] = {}
+MOVED_RAD = 1e-4
 
 
 def _env(tree: Path) -> dict[str, str]:
@@ -67,23 +84,33 @@ def _run(cmd: list[str], tree: Path = REPO) -> tuple[float, float]:
     return wall, usage.ru_utime + usage.ru_stime
 
 
-def _measure_start(tree: Path, tmp: Path) -> tuple[float, float]:
+def _measure_start(tree: Path, tmp: Path, name: str) -> tuple[float, float]:
     """Seconds from starting ``lrms measure`` to its raw log's measurement record (the sweep's
-    start); no CPU time (NaN)."""
+    start) and the CPU seconds of the whole run, all processes. The first motion goes to
+    :data:`MOTION` under ``name``."""
     out = tmp / "measure.mcap"
     cmd = [sys.executable, "-m", "service.cli.main", *MEASURE_ARGS, "--data", str(tmp / "data"), "--out", str(out)]
+    out.unlink(missing_ok=True)
     t0 = time.time_ns()
-    proc = subprocess.run(cmd, cwd=tree, env=_env(tree), capture_output=True, text=True, check=False)
+    proc = subprocess.Popen(cmd, cwd=tree, env=_env(tree), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    _, _, usage = os.wait4(proc.pid, 0)  # its waited-for children (rig process, simulated rig) included
+    err = proc.stderr.read().decode() if proc.stderr else ""
     if not out.exists():  # a failed measurement still copies its raw log (the start is in it)
-        raise SystemExit(f"lrms measure on {tree} failed: {proc.stderr[-800:]}")
-    return _sweep_start(out, t0), math.nan
+        raise SystemExit(f"lrms measure on {tree} failed: {err[-800:]}")
+    return _sweep_start(out, t0, name), usage.ru_utime + usage.ru_stime
 
 
-def _sweep_start(out: Path, t0_ns: int) -> float:
-    """Seconds from ``t0_ns`` (``time.time_ns``) to the measurement record of the raw log ``out``."""
-    from service.mcaplog import TOPIC_MEASUREMENT, read_log
+def _sweep_start(out: Path, t0_ns: int, name: str) -> float:
+    """Seconds from ``t0_ns`` (``time.time_ns``) to the measurement record of the raw log ``out``;
+    the seconds to its first motion (:data:`MOVED_RAD`) are appended to ``MOTION[name]``."""
+    from service.mcaplog import TOPIC_MEASUREMENT, TOPIC_MOTOR, read_log
 
     msgs, _ = read_log(out)
+    motor = [(m.log_time_ns, m.decode().joints[0].position) for m in msgs if m.topic == TOPIC_MOTOR]
+    moved = next((t for t, p in motor if abs(p - motor[0][1]) > MOVED_RAD), None) if motor else None
+    if moved is None:
+        raise SystemExit(f"{out}: the motor never moved")
+    MOTION.setdefault(name, []).append((moved - t0_ns) / 1e9)
     return (next(m.log_time_ns for m in msgs if m.topic == TOPIC_MEASUREMENT) - t0_ns) / 1e9
 
 
@@ -125,7 +152,7 @@ def _serve(tmp: Path, token: str) -> Iterator[str]:
         proc.wait(30)
 
 
-def _measure_server_start(url: str, token: str, tmp: Path) -> tuple[float, float]:
+def _measure_server_start(url: str, token: str, tmp: Path, name: str) -> tuple[float, float]:
     """Seconds from starting ``lrms measure --server URL`` to the raw log's measurement record,
     and the client process's CPU seconds. A failed run stops the bench with the command's error
     (the simulated rig allows 2 s of heartbeat silence since 164b9d7; a drive fault is no longer
@@ -139,7 +166,7 @@ def _measure_server_start(url: str, token: str, tmp: Path) -> tuple[float, float
     _, status, usage = os.wait4(proc.pid, 0)
     err = proc.stderr.read() if proc.stderr else ""
     if os.waitstatus_to_exitcode(status) == 0 and out.exists():
-        return _sweep_start(out, t0), usage.ru_utime + usage.ru_stime
+        return _sweep_start(out, t0, name), usage.ru_utime + usage.ru_stime
     raise SystemExit(f"lrms measure --server {url} failed: {err[-500:]}")
 
 
@@ -166,6 +193,9 @@ def _start_times(reps: int, tmp: Path, baseline: Path | None, url: str, token: s
     py = sys.executable
     lrms = [py, "-m", "service.cli.main"]
 
+    def _tag(tree: Path, what: str) -> str:
+        return what if tree == REPO else f"base: {what}"
+
     def cmd(argv: list[str]) -> Callable[[Path], tuple[float, float]]:
         return lambda tree: _run(argv, tree)
 
@@ -178,9 +208,17 @@ def _start_times(reps: int, tmp: Path, baseline: Path | None, url: str, token: s
         ("lrms fit --help", cmd([*lrms, "fit", "--help"]), True),
         ("lrms measure --help", cmd([*lrms, "measure", "--help"]), True),
         ("lrms fit imports", cmd([py, "-c", FIT_IMPORTS]), True),
+        ("measure: command before the rig process", cmd([py, "-c", MEASURE_FIRST]), True),
+        ("measure: service imports (API thread)", cmd([py, "-c", "import service.api"]), True),
+        ("measure: rig process imports", cmd([py, "-c", "import service.rigproc, service.config, service.rig"]), True),
+        ("measure: simulated rig imports + build", cmd([py, "-c", SIM_BUILD]), True),
         ("lrms fit 2k-point cloud", cmd([*lrms, "fit", str(small), "--no-line-of-sight", "--json"]), True),
-        ("lrms measure: until the sweep starts", lambda tree: _measure_start(tree, tmp), True),
-        ("lrms measure --server: until the sweep starts", lambda tree: _measure_server_start(url, token, tmp), False),
+        ("lrms measure: until the sweep starts", lambda tree: _measure_start(tree, tmp, _tag(tree, "embedded")), True),
+        (
+            "lrms measure --server: until the sweep starts",
+            lambda tree: _measure_server_start(url, token, tmp, "server"),
+            False,
+        ),
     ]
     trees = [("", REPO)] + ([("base: ", baseline)] if baseline is not None else [])
     rows = [(tag + name, fn, tree) for name, fn, both in cases for tag, tree in trees if both or not tag]
@@ -199,6 +237,12 @@ def _start_times(reps: int, tmp: Path, baseline: Path | None, url: str, token: s
         w, c = min(walls[name]), min(cpus[name])
         cpu = f"{c:>7.3f} {c / base_c:>7.1f}" if math.isfinite(c) else f"{'-':>7} {'-':>7}"
         print(f"{name:<46} {w:>7.3f} {w / base_w:>7.1f} {cpu}")
+    # the warm-up run of each case is not counted
+    motion = {k: v[1:] for k, v in MOTION.items()}
+    print(
+        "first motion (s from the command's start; least of the runs, x python -c pass): "
+        + "; ".join(f"{k} {min(v):.3f} ({min(v) / base_w:.1f}x)" for k, v in motion.items() if v)
+    )
     if baseline is not None:
         ratios = [f"{name}: {min(walls['base: ' + name]) / min(walls[name]):.2f}x" for name, _, both in cases if both]
         print("baseline tree / this tree (wall): " + "; ".join(ratios))

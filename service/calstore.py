@@ -21,17 +21,20 @@ from __future__ import annotations
 import datetime
 import uuid
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import sqlalchemy as sa
 
-from lrms.calibration import CalibrationError, CalibrationResult
 from lrms.errors import LrmsError
 from lrms.kinematics import RigModel
 from service.db.schema import calibrations
 from service.db.tx import write_transaction
 from service.store import NotFound, StoreError
+
+if TYPE_CHECKING:  # imported where a calibration is parsed or read: lrms.calibration loads
+    # scipy.spatial and scipy.special (~0.7 s CPU), which the service's start does not need
+    from lrms.calibration import CalibrationResult
 
 
 def parse_calibration(data: Any) -> CalibrationResult:
@@ -40,6 +43,8 @@ def parse_calibration(data: Any) -> CalibrationResult:
     Beyond :meth:`CalibrationResult.from_dict`: the estimated parameters are known, distinct rig
     parameters; the covariance is finite, symmetric and positive semi-definite, and zero outside
     the estimated parameters (held ones carry no uncertainty of their own)."""
+    from lrms.calibration import CalibrationError, CalibrationResult
+
     try:
         cal = CalibrationResult.from_dict(data)
     except CalibrationError:
@@ -194,6 +199,8 @@ def _same_rig(rig_id: str | None) -> sa.ColumnElement[bool]:
 
 
 def _record(row: Any) -> StoredCalibration:
+    from lrms.calibration import CalibrationResult
+
     return StoredCalibration(
         id=row.id,
         created=row.created,

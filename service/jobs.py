@@ -23,7 +23,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
@@ -32,7 +32,10 @@ from lrms.errors import LrmsError
 from service import mcaprecovery
 from service.errors import ServiceError
 from service.models import MeasurementRequest
-from service.store import FINAL_STATES, INTERRUPTED, Measurement, Store, StoreError
+
+if TYPE_CHECKING:  # the store (SQLAlchemy, Alembic) is imported where it is used: the rig process
+    # imports this module for JobContext and Cancelled only, and never opens a store
+    from service.store import Measurement, Store
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +73,8 @@ class ProgressHub:
             self._version += 1
             self._events[m.id] = (self._version, event)
             if len(self._events) > 10_000:  # forget the oldest finished ones
+                from service.store import FINAL_STATES
+
                 for key in list(self._events)[:1000]:
                     if self._events[key][1]["state"] in FINAL_STATES:
                         del self._events[key]
@@ -219,6 +224,8 @@ class JobRunner:
         cut short is rebuilt into a complete MCAP file (:func:`service.mcaprecovery.recover_log`), served
         with ``raw_truncated``; the failure reason says where it ends and how much it holds."""
         raw = self.raw_dir / f"{mid}.mcap"
+        from service.store import INTERRUPTED
+
         cloud = self.cloud_dir / f"{mid}.ply"
         reason = INTERRUPTED
         raw_path: str | None = None
@@ -288,6 +295,8 @@ class JobRunner:
 
     def cancel(self, mid: str) -> Measurement:
         """Cancel a queued measurement at once, or ask the running one to stop."""
+        from service.store import FINAL_STATES, StoreError
+
         with self._lock:
             m = self.store.get(mid)
             if m.state in FINAL_STATES:
@@ -323,6 +332,8 @@ class JobRunner:
                 self._run_one(queued[0])
 
     def _run_one(self, m: Measurement) -> None:
+        from service.store import StoreError
+
         with self._lock:
             try:
                 m = self.store.start(m.id)

@@ -22,10 +22,9 @@ from urllib.parse import urlsplit, urlunsplit
 
 import numpy as np
 
-import service.simdevices  # noqa: F401  (registers the sim:// device URLs)
 from drivers.lms100.client import ScannerClient
 from drivers.servo import cia402
-from drivers.url import open_device
+from drivers.url import open_device, register
 from lrms.errors import FitError
 from lrms.kinematics import RigCalibration
 from service import fitting, mcaplog
@@ -40,6 +39,12 @@ if TYPE_CHECKING:  # imported where a calibration is applied: it loads lrms.cali
     from service.calstore import StoredCalibration
 
 log = logging.getLogger(__name__)
+
+# the sim:// device URLs, by dotted path: the simulator's device code (the scene, the scanner's
+# ray-caster) loads only where a sim:// URL is opened, not in every rig process (a [sim] rig with
+# process = true opens the simulated rig's tcp:// and socketcand:// URLs)
+register("scanner", "sim", "service.simdevices:open_sim_scanner")
+register("motor", "sim", "service.simdevices:open_sim_motor")
 
 
 def open_scanner(url: str, **kw: Any) -> ScannerClient:
@@ -413,7 +418,8 @@ class Rig:
 
     def _start_fit_pool(self) -> None:
         """The fit worker: spawned (a fork of this threaded process could inherit held locks) and
-        warmed up (imports) at once, so the first measurement does not wait for it."""
+        warmed up (imports) at start-up, so the first measurement does not wait for it and its start-up
+        does not compete with a sweep."""
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 

@@ -47,11 +47,14 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from service.config import RigConfig
 from service.errors import ServiceError
 
-if TYPE_CHECKING:  # imported where used: ``lrms measure`` starts this process before it loads them
+if TYPE_CHECKING:  # imported where used: ``lrms measure`` starts this process before it loads them,
+    # and this process starts the simulated rig before it loads the config models (pydantic): the
+    # boot message's unpickling imports them
+    from service.config import RigConfig
     from service.jobs import JobContext
+    from service.simproc import SimProcess
     from service.store import Measurement
 
 log = logging.getLogger(__name__)
@@ -292,22 +295,44 @@ def _stop_if_enabled(rig: Any) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m service.rigproc FD``: the rig process (started by :class:`RigSupervisor`; FD is
-    its end of the socket pair, and the first message on it is a :class:`Boot`)."""
+    """``python -m service.rigproc FD [SIM_ARGS]``: the rig process (started by :class:`RigSupervisor`;
+    FD is its end of the socket pair, and the first message on it is a :class:`Boot`). SIM_ARGS
+    (JSON, :func:`service.simproc.sim_args`; a ``[sim]`` config with ``process = true``): the
+    simulated rig to start first, before the boot message is read (its unpickling loads the
+    config models) and the rig code is imported, so the simulated rig boots meanwhile."""
     args = sys.argv[1:] if argv is None else argv
     conn = Connection(int(args[0]))
+    sim = None
+    if len(args) > 1:
+        import json
+
+        from service.simproc import SimProcess
+
+        sim = SimProcess(wait=False, args=json.loads(args[1]))
     try:
         boot = conn.recv()
     except (EOFError, OSError):
+        if sim is not None:
+            sim.close()
         return 1
     if not isinstance(boot, Boot):
+        if sim is not None:
+            sim.close()
         return 2
-    child_main(conn, boot.config, boot.log_level, boot.status_period_s, boot.after_crash)
+    child_main(conn, boot.config, boot.log_level, boot.status_period_s, boot.after_crash, sim)
     return 0
 
 
-def child_main(conn: Connection, config: RigConfig, log_level: str, status_period_s: float, after_crash: bool) -> None:
-    """The rig process's work: open the rig, report, run commands until told to stop or the pipe closes."""
+def child_main(
+    conn: Connection,
+    config: RigConfig,
+    log_level: str,
+    status_period_s: float,
+    after_crash: bool,
+    sim: SimProcess | None = None,
+) -> None:
+    """The rig process's work: open the rig, report, run commands until told to stop or the pipe
+    closes. ``sim``: the simulated rig's process, already started (by :func:`main`)."""
     import os
 
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -325,9 +350,8 @@ def child_main(conn: Connection, config: RigConfig, log_level: str, status_perio
 
     signal.signal(signal.SIGTERM, terminated)
     outbox = _Outbox(conn)
-    sim = None
     try:
-        if config.sim is not None and config.sim.process:
+        if sim is None and config.sim is not None and config.sim.process:
             from service.simproc import SimProcess
 
             sim = SimProcess(config, wait=False)  # the simulated rig boots while the rig code loads
@@ -457,8 +481,15 @@ class RigSupervisor:
         # a process of its own started with ``-m`` (not multiprocessing's spawn, which would import
         # the caller's main script again), its end of a socket pair passed as a file descriptor
         ours, theirs = socket.socketpair()
+        argv = [sys.executable, "-m", "service.rigproc", str(theirs.fileno())]
+        if self.config.sim is not None and self.config.sim.process:
+            import json
+
+            from service.simproc import sim_args
+
+            argv.append(json.dumps(sim_args(self.config)))  # started first thing (main)
         proc = subprocess.Popen(
-            [sys.executable, "-m", "service.rigproc", str(theirs.fileno())],
+            argv,
             pass_fds=[theirs.fileno()],
             stdin=subprocess.DEVNULL,
         )

@@ -1,9 +1,11 @@
 """The simulated rig in a child process (``python -m sim.rig``), as :class:`service.rig.Rig` opens
 it for a ``[sim]`` config with ``process = true``.
 
-A module of its own (the standard library only) so that the rig process
-(:func:`service.rigproc.child_main`) starts the simulated rig before it imports the rig code,
-and the two boot at the same time.
+A module of its own (the standard library only) so that the rig process starts the simulated
+rig before it imports anything else: :class:`service.rigproc.RigSupervisor` passes
+:func:`sim_args` on the rig process's command line, and the rig process
+(:func:`service.rigproc.main`) starts the simulated rig from them before it reads its boot
+message (which loads the config models) and the rig code, so they all boot at the same time.
 """
 
 from __future__ import annotations
@@ -20,33 +22,40 @@ if TYPE_CHECKING:
     from service.config import RigConfig
 
 
-class SimProcess:
-    """The simulated rig in a child process (``python -m sim.rig``), served on 127.0.0.1."""
+def sim_args(config: RigConfig) -> list[str]:
+    """The command line of ``python -m sim.rig`` (after ``-m sim.rig``) for a ``[sim]`` config."""
+    sim = config.sim
+    assert sim is not None
+    return [
+        "--scene",
+        sim.scene,
+        "--sensor",
+        sim.sensor,
+        "--seed",
+        str(sim.seed),
+        "--cola",
+        sim.cola,
+        "--can",
+        sim.can,
+        "--node",
+        str(sim.node),
+        "--kinematics",
+        json.dumps(config.sim_kinematics),
+        "--noise",
+        json.dumps(config.noise.si()),
+    ]
 
-    def __init__(self, config: RigConfig, wait: bool = True) -> None:
-        sim = config.sim
-        assert sim is not None
-        cmd = [
-            sys.executable,
-            "-m",
-            "sim.rig",
-            "--scene",
-            sim.scene,
-            "--sensor",
-            sim.sensor,
-            "--seed",
-            str(sim.seed),
-            "--cola",
-            sim.cola,
-            "--can",
-            sim.can,
-            "--node",
-            str(sim.node),
-            "--kinematics",
-            json.dumps(config.sim_kinematics),
-            "--noise",
-            json.dumps(config.noise.si()),
-        ]
+
+class SimProcess:
+    """The simulated rig in a child process (``python -m sim.rig``), served on 127.0.0.1: of a
+    ``[sim]`` config, or of its :func:`sim_args` (``args``, without a config)."""
+
+    def __init__(self, config: RigConfig | None = None, wait: bool = True, *, args: list[str] | None = None) -> None:
+        if args is None:
+            if config is None:
+                raise TypeError("SimProcess needs a config or its sim_args")
+            args = sim_args(config)
+        cmd = [sys.executable, "-m", "sim.rig", *args]
         self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         self.info: dict[str, Any] = {}
         self.scanner_url = ""

@@ -24,23 +24,29 @@ LRMS = [sys.executable, "-m", "service.cli.main"]
 def test_measure_starts_the_rig_process_before_the_rig_code_api_and_store_load() -> None:
     """``lrms measure`` starts the rig process (:func:`service.rigproc.isolated_service`) with only
     the config and request models loaded: the rig code, the web stack and the store load in this
-    process while the rig process boots (bench/bench_cli_start.py: the sweep's start); the rig
-    code loads the calibration store only when a calibration is applied."""
+    process while the rig process boots (bench/bench_cli_start.py: the sweep's start). The rig
+    process's code loads no store (SQLAlchemy, Alembic), no web stack, no simulator device code
+    (a process = true rig opens the simulated rig's tcp:// and socketcand:// URLs) and no
+    calibration store (only when a calibration is applied); the service (``service.api``) loads
+    no ``lrms.calibration`` (scipy.spatial, scipy.special) until a calibration is read."""
     code = (
         "import sys\n"
         "import service.cli.measure, service.config, service.models, service.rigproc\n"
-        "late = ('service.rig', 'service.api', 'service.store', 'service.jobs', 'fastapi', 'sqlalchemy', 'scipy',\n"
-        "        'service.calstore', 'scipy.optimize')\n"
+        "late = ('service.rig', 'service.api', 'service.store', 'service.jobs', 'fastapi', 'sqlalchemy', 'alembic',\n"
+        "        'scipy', 'service.calstore', 'lrms.calibration', 'scipy.optimize', 'sim.scanner', 'sim.scene')\n"
         "print('LOADED:', *[m for m in late if m in sys.modules])\n"
         "import service.rig\n"
         "print('LOADED:', *[m for m in late if m in sys.modules])\n"
+        "import service.api\n"
+        "print('LOADED:', *[m for m in late if m in sys.modules])\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, check=True)
-    before, after = out.stdout.strip().splitlines()[-2:]
-    assert before == "LOADED:", out.stdout
-    assert "service.rig" in after.split() and "service.store" in after.split()  # the probe can see them
-    # the rig process's code before its sweep: no calibration store (lrms.calibration, scipy.optimize)
-    assert "service.calstore" not in after.split() and "scipy.optimize" not in after.split(), after
+    before, rig, api = (line.split() for line in out.stdout.strip().splitlines()[-3:])
+    assert before == ["LOADED:"], out.stdout
+    assert "service.rig" in rig and "service.jobs" in rig  # the probe can see them
+    assert rig == ["LOADED:", "service.rig", "service.jobs"], rig
+    assert {"service.api", "service.store", "fastapi", "sqlalchemy", "service.calstore"} <= set(api), api
+    assert not {"lrms.calibration", "scipy", "scipy.optimize"} & set(api), api
 
 
 def test_measure_then_replay(tmp_path: Path) -> None:
