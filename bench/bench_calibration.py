@@ -74,6 +74,7 @@ from lrms.calibration import (
     GOAL,
     AdjustOptions,
     Artefact,
+    CalibrationError,
     CalibrationOptions,
     CalibrationResult,
     Observations,
@@ -395,6 +396,7 @@ def main(argv: list[str] | None = None) -> int:
     stds: dict[str, list[float]] = {}
     rows = []
     lms: list[tuple[dict[str, float], dict[str, float]]] = []
+    failures: list[str] = []
     t0 = time.perf_counter()
     for run in range(args.runs):
         rig = draw_rig(rng)
@@ -406,7 +408,12 @@ def main(argv: list[str] | None = None) -> int:
             for j in range(args.poses)
             for k in range(args.sweeps)
         ]
-        res = calibrate(sweeps, art, options=opts, poses="separate" if args.poses > 1 else "shared")
+        try:
+            res = calibrate(sweeps, art, options=opts, poses="separate" if args.poses > 1 else "shared")
+        except CalibrationError as exc:  # e.g. a sweep that cannot be registered: counted, not fatal
+            failures.append(f"run {run}: {exc}")
+            print(f"run {run:2d}: calibration failed: {exc}", flush=True)
+            continue
         truth = rig.canonical()
         std = res.std()
         worst = ("", 0.0)
@@ -463,6 +470,10 @@ def main(argv: list[str] | None = None) -> int:
         f"{args.speed} deg/s, {-args.sweep_deg / 2:g}..{args.sweep_deg / 2:g} deg, <= {args.plane_points} beams per "
         f"plane; ideal thin beam, sigma_l = 11.67 mm"
     )
+    if failures:
+        print(f"{len(failures)} of {args.runs} calibrations failed: " + "; ".join(failures))
+    if not rows:
+        return 1
     print_tables(errs, stds, rows)
     if lms:
         print("\nseed 003 part with the LMS1xx footprint (noise on; footprint fit; U with k = 2), before / after:")
