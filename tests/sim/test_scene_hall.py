@@ -41,9 +41,9 @@ def test_hall_scene_has_the_documented_spheres_inside_the_hall_and_its_artefact_
     hi = np.array([HALL_WALLS["x_max"], HALL_WALLS["y_max"], HALL_WALLS["z_max"]])
     points = [(np.asarray(c), d / 2) for c, d in HALL_AXIS_SPHERES]
     points += [(np.asarray(t), 0.2) for t, _, _ in HALL_AXIS_POSES]
-    for c, r in points:  # the spheres and the rigs clear of the walls
-        x = centre + to_hall @ (c - centre)
-        assert np.all(x - r > lo + 0.3) and np.all(x + r < hi - 0.3), c
+    for at, r in points:  # the spheres and the rigs clear of the walls
+        x = centre + to_hall @ (at - centre)
+        assert np.all(x - r > lo + 0.3) and np.all(x + r < hi - 0.3), at
     for o, (c, diameter) in zip(spheres, HALL_AXIS_SPHERES, strict=True):
         assert isinstance(o.shape, Sphere)
         np.testing.assert_array_equal(o.shape.center, c)
