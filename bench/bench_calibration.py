@@ -29,6 +29,10 @@ Artefact layouts (``--layout``; docs/calibration.md, "What limits k1 and the mot
   looking along its motor shaft at a sphere on that line; its own poses
   (:data:`sim.scene.library.ROOM_AXIS_POSES`) instead of :data:`POSES`. For k1
   (docs/calibration.md, "The axis layout").
+* ``hall``: the ``hall-spheres-axis`` scene (a 12 m workshop hall, four 0.5 m spheres, 6 known
+  distances), the axis layout's idea with 6.6-9.2 m from each pose to its far sphere on its shaft;
+  its own poses (:data:`sim.scene.library.HALL_AXIS_POSES`). For k1 (docs/calibration.md, "The
+  hall layout").
 
 ``--sweep-deg`` is the motor span, centred on 0 (180: -90..90; 340: -170..170, where most of
 the room is seen twice, from both halves of the 270 deg scan).
@@ -39,8 +43,8 @@ separate unknown pose per sweep (``calibrate(..., poses="separate")``); ``--swee
 each pose.
 
     python -m bench.bench_calibration [--runs 20] [--poses 3] [--speed 20] [--sweeps 1] [--plane-points 5000] [--seed 0]
-        [--layout room|long-bar|network|network-large|axis] [--sweep-deg 340] [--u-distance 3e-5] [--no-part] [--lms1xx]
-        [--resegmentations 4] [--save runs.json]
+        [--layout room|long-bar|network|network-large|axis|hall] [--sweep-deg 340] [--u-distance 3e-5]
+        [--no-part] [--lms1xx] [--resegmentations 4] [--save runs.json]
     python -m bench.bench_calibration --combine a.json b.json   # the tables over several --save files
 
 The defaults are the documented design of docs/calibration.md ("k1 over 20 random rigs").
@@ -70,6 +74,7 @@ from lrms.calibration import (
     GOAL,
     AdjustOptions,
     Artefact,
+    CalibrationError,
     CalibrationOptions,
     CalibrationResult,
     Observations,
@@ -91,10 +96,12 @@ from sim.scene import (
     lms1xx_device_angles,
 )
 from sim.scene.library import (
+    HALL_AXIS_POSES,
     ROOM_AXIS_POSES,
     ROOM_SPHERE_BAR,
     ROOM_SPHERES,
     ROOM_SPHERES_LARGE_FACTOR,
+    hall_axis_artefact,
     room_axis_artefact,
     room_spheres_artefact,
 )
@@ -128,6 +135,8 @@ def layout(name: str, u_distance_m: float) -> tuple[Scene, Artefact]:
         return get_scene("room-spheres"), Artefact.from_dict(art)
     if name == "axis":
         return get_scene("room-spheres-axis"), Artefact.from_dict(room_axis_artefact(u_distance_m))
+    if name == "hall":
+        return get_scene("hall-spheres-axis"), Artefact.from_dict(hall_axis_artefact(u_distance_m))
     scene = get_scene("room-spheres")
     if name == "long-bar":
         a, b, _ = ROOM_SPHERE_BAR
@@ -169,6 +178,8 @@ def _pose(t: tuple[float, float, float], yaw_deg: float, tip_deg: float = 0.0) -
 POSES = (np.eye(4), _pose((0.3, 3.0, 0.0), 180.0, 1.0), _pose((1.8, 1.0, 0.3), 90.0))
 #: ``--layout axis``: the poses of ``room-spheres-axis`` (:data:`sim.scene.library.ROOM_AXIS_POSES`).
 AXIS_POSES = tuple(_pose(t, yaw, tip) for t, yaw, tip in ROOM_AXIS_POSES)
+#: ``--layout hall``: the poses of ``hall-spheres-axis`` (:data:`sim.scene.library.HALL_AXIS_POSES`).
+HALL_POSES = tuple(_pose(t, yaw, tip) for t, yaw, tip in HALL_AXIS_POSES)
 
 
 def calibration_sweep(
@@ -361,7 +372,7 @@ def main(argv: list[str] | None = None) -> int:
         help="re-segmentation rounds at most (1: the single re-segmentation of before)",
     )  # fmt: skip
     ap.add_argument(
-        "--layout", choices=("room", "long-bar", "network", "network-large", "axis"), default="network-large"
+        "--layout", choices=("room", "long-bar", "network", "network-large", "axis", "hall"), default="network-large"
     )
     ap.add_argument("--sweep-deg", type=float, default=340.0, help="motor span of a sweep, centred on 0")
     ap.add_argument("--u-distance", type=float, default=3e-5, help="u of the long bar's / network's distances, m")
@@ -377,7 +388,7 @@ def main(argv: list[str] | None = None) -> int:
         return combine(args.combine)
     rng = np.random.default_rng(args.seed)
     scene, art = layout(args.layout, args.u_distance)
-    poses = AXIS_POSES if args.layout == "axis" else POSES
+    poses = {"axis": AXIS_POSES, "hall": HALL_POSES}.get(args.layout, POSES)
     opts = CalibrationOptions(
         adjust=AdjustOptions(max_plane_points=args.plane_points, max_resegmentations=args.resegmentations)
     )
@@ -385,6 +396,7 @@ def main(argv: list[str] | None = None) -> int:
     stds: dict[str, list[float]] = {}
     rows = []
     lms: list[tuple[dict[str, float], dict[str, float]]] = []
+    failures: list[str] = []
     t0 = time.perf_counter()
     for run in range(args.runs):
         rig = draw_rig(rng)
@@ -396,7 +408,12 @@ def main(argv: list[str] | None = None) -> int:
             for j in range(args.poses)
             for k in range(args.sweeps)
         ]
-        res = calibrate(sweeps, art, options=opts, poses="separate" if args.poses > 1 else "shared")
+        try:
+            res = calibrate(sweeps, art, options=opts, poses="separate" if args.poses > 1 else "shared")
+        except CalibrationError as exc:  # e.g. a sweep that cannot be registered: counted, not fatal
+            failures.append(f"run {run}: {exc}")
+            print(f"run {run:2d}: calibration failed: {exc}", flush=True)
+            continue
         truth = rig.canonical()
         std = res.std()
         worst = ("", 0.0)
@@ -453,6 +470,10 @@ def main(argv: list[str] | None = None) -> int:
         f"{args.speed} deg/s, {-args.sweep_deg / 2:g}..{args.sweep_deg / 2:g} deg, <= {args.plane_points} beams per "
         f"plane; ideal thin beam, sigma_l = 11.67 mm"
     )
+    if failures:
+        print(f"{len(failures)} of {args.runs} calibrations failed: " + "; ".join(failures))
+    if not rows:
+        return 1
     print_tables(errs, stds, rows)
     if lms:
         print("\nseed 003 part with the LMS1xx footprint (noise on; footprint fit; U with k = 2), before / after:")

@@ -44,6 +44,11 @@ class DetectOptions:
     radius_tolerance_m: float = 0.03
     sphere_threshold_m: float = 0.05
     distance_tolerance_m: float = 0.05
+    #: the sphere tests' tolerances grow by this much per metre of the sphere's range (and the
+    #: distance match's per metre of distance): in the nominal cloud, angle errors up to 0.3 deg
+    #: each (alpha zero, the scan plane's tilt) smear and move a sphere 5 mm per metre of range,
+    #: 47 mm at 9 m (docs/calibration.md, "The hall layout (k1)")
+    range_tolerance: float = 0.01
     seed: int = 0
 
 
@@ -159,14 +164,15 @@ def detect_spheres(
     for comp in np.flatnonzero(counts >= opts.min_sphere_points):
         members = np.flatnonzero(labels == comp)
         c, r, _ = _fit_sphere(pts[members])
+        slack = opts.range_tolerance * float(np.linalg.norm(c))
         k = int(np.argmin(np.abs(radii - r)))
-        if abs(radii[k] - r) > opts.radius_tolerance_m:
+        if abs(radii[k] - r) > opts.radius_tolerance_m + slack:
             continue
         c, rms = _fit_sphere_known(pts[members], c, float(radii[k]))
-        if rms > opts.sphere_threshold_m / 2:
+        if rms > opts.sphere_threshold_m / 2 + slack:
             continue
         dist = np.abs(np.linalg.norm(pts[members] - c, axis=1) - radii[k])
-        found.append((candidates[members[dist < opts.sphere_threshold_m]], c, float(radii[k]), rms))
+        found.append((candidates[members[dist < opts.sphere_threshold_m + slack]], c, float(radii[k]), rms))
     if not found:
         raise DetectionError(
             f"no spheres found: no cluster of >= {opts.min_sphere_points} points off the planes fits a sphere of "
@@ -268,9 +274,9 @@ def _assign(
         for d in artefact.distances:
             if d.a in owner and d.b in owner:
                 err = abs(float(np.linalg.norm(centres[owner[d.a]] - centres[owner[d.b]])) - d.distance_m)
-                cost += min(err, tol)
+                cost += min(err, tol + opts.range_tolerance * d.distance_m)
             else:
-                cost += tol
+                cost += tol + opts.range_tolerance * d.distance_m
         if best is None or cost < best[0] - 1e-12:
             best = (cost, owner)
     assert best is not None
@@ -294,7 +300,9 @@ def _assign_pairwise(
                 if not (np.isclose(2 * fi[2], diam[d.a]) and np.isclose(2 * fj[2], diam[d.b])):
                     continue
                 err = abs(float(np.linalg.norm(fi[1] - fj[1])) - d.distance_m)
-                if err < opts.distance_tolerance_m and (best is None or err < best[0]):
+                if err < opts.distance_tolerance_m + opts.range_tolerance * d.distance_m and (
+                    best is None or err < best[0]
+                ):
                     best = (err, i, j)
         if best is not None and d.a not in owner and d.b not in owner:
             owner[d.a], owner[d.b] = best[1], best[2]

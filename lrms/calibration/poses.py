@@ -45,14 +45,22 @@ def kabsch(a: FloatArray, b: FloatArray) -> FloatArray:
 
 
 def match_spheres(
-    ref: Sequence[SphereSeg], other: Sequence[SphereSeg], tolerance_m: float = 0.1, min_spread_m: float = 0.1
+    ref: Sequence[SphereSeg],
+    other: Sequence[SphereSeg],
+    tolerance_m: float = 0.1,
+    min_spread_m: float = 0.1,
+    range_tolerance: float = 0.01,
 ) -> tuple[FloatArray, dict[int, int]]:
     """The initial pose (4x4, ``other``'s frame into ``ref``'s) and the matches ``{other position:
-    ref position}``. Raises :class:`RegistrationError` without three common spheres off a line."""
+    ref position}``. Raises :class:`RegistrationError` without three common spheres off a line.
+    The tolerances grow by ``range_tolerance`` per metre of the centre distance compared (of the
+    first sweep's centre's range, for a sphere landing on it): the nominal clouds are distorted in
+    proportion to range (:attr:`lrms.calibration.detect.DetectOptions.range_tolerance`)."""
     rc = np.array([s.center for s in ref])
     oc = np.array([s.center for s in other])
     rr = np.array([s.radius for s in ref])
     orad = np.array([s.radius for s in other])
+    ref_range = np.linalg.norm(rc, axis=1)
     best: tuple[int, float, FloatArray, dict[int, int]] | None = None
     for tri in itertools.combinations(range(len(ref)), 3):
         ti = np.array(tri)
@@ -63,7 +71,8 @@ def match_spheres(
             pi = np.array(perm)
             if np.any(np.abs(orad[pi] - rr[ti]) > 1e-9):
                 continue
-            if np.any(np.abs(np.linalg.norm(oc[pi][:, None] - oc[pi][None], axis=2) - d_ref) > tolerance_m):
+            d_other = np.linalg.norm(oc[pi][:, None] - oc[pi][None], axis=2)
+            if np.any(np.abs(d_other - d_ref) > tolerance_m + range_tolerance * d_ref):
                 continue
             t = kabsch(oc[pi], rc[ti])
             moved = oc @ t[:3, :3].T + t[:3, 3]
@@ -73,7 +82,7 @@ def match_spheres(
             err = []
             for i in np.argsort(dist.min(axis=1)):
                 j = int(np.argmin(dist[i]))
-                if dist[i, j] <= tolerance_m and j not in pairs.values():
+                if dist[i, j] <= tolerance_m + range_tolerance * ref_range[j] and j not in pairs.values():
                     pairs[int(i)] = j
                     err.append(dist[i, j])
             rms = float(np.sqrt(np.mean(np.square(err))))
@@ -82,6 +91,7 @@ def match_spheres(
     if best is None:
         raise RegistrationError(
             f"no three reference spheres off a line seen in both sweeps agree within {tolerance_m} m "
+            f"+ {range_tolerance} m per m "
             f"({len(ref)} and {len(other)} spheres found): separate poses need at least three common spheres"
         )
     _, _, t, pairs = best

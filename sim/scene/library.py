@@ -325,6 +325,71 @@ def room_spheres_axis() -> Scene:
     return room
 
 
+#: ``hall-spheres-axis`` (docs/calibration.md, "The hall layout"): the axis layout's idea in a
+#: 12.4 m x 8.4 m workshop hall (walls turned 3 deg about the hall's centre (0, 4.8) m, floor
+#: -1.3 m, ceiling 2.7 m), so that each rig pose's far sphere on its shaft line is 6.6-9.2 m away
+#: and its near sphere 1.1-1.3 m: the lever of k1 is 5.5-8 m per pose instead of 1-3.7 m. Four
+#: spheres of 0.5 m, all 6 centre distances known. Spheres 0 and 1 serve two poses each: sphere 0
+#: is far on pose 0's shaft (9.0 m) and near pose 1 (1.3 m), sphere 1 the reverse. Centres (m)
+#: in the first pose's rig frame.
+HALL_YAW_DEG = 3.0
+HALL_WALLS = {"x_min": -4.2, "x_max": 4.2, "y_min": -1.4, "y_max": 11.0, "z_min": -1.3, "z_max": 2.7}
+HALL_CENTRE = (0.0, 4.8)
+HALL_AXIS_SPHERES: tuple[tuple[tuple[float, float, float], float], ...] = (
+    ((0.0, 9.0, 0.0), 0.5),  # far on pose 0's shaft (9.0 m); 1.3 m from pose 1, 22 deg off its shaft
+    ((0.0, 1.001, 0.611), 0.5),  # far on pose 1's shaft (9.2 m); 1.2 m from pose 0, 31 deg off its shaft
+    ((-3.3, 3.0, 0.3), 0.5),  # far on pose 2's shaft (6.6 m)
+    ((2.333, 3.451, 0.032), 0.5),  # 1.1 m from pose 2, 28 deg off its shaft
+)
+#: The rig poses of ``hall-spheres-axis`` (position m, turn about z deg, tip about x deg): the
+#: origin looking along +y; 10.2 m along +y and 0.45 m up, turned to look back (-y), tipped
+#: 1 deg; at (3.3, 3.0, 0.3) looking along -x across the hall.
+HALL_AXIS_POSES: tuple[tuple[tuple[float, float, float], float, float], ...] = (
+    ((0.0, 0.0, 0.0), 0.0, 0.0),
+    ((0.0, 10.2, 0.45), 180.0, 1.0),
+    ((3.3, 3.0, 0.3), 90.0, 0.0),
+)
+
+
+def hall_axis_artefact(u_distance_m: float = 3e-5) -> dict[str, object]:
+    """``hall-spheres-axis``'s artefact: the four 0.5 m spheres and all 6 centre distances (each
+    with standard uncertainty ``u_distance_m``: a laser tracker network; docs/calibration.md)."""
+    c = [np.asarray(x, dtype=np.float64) for x, _ in HALL_AXIS_SPHERES]
+    n = len(c)
+    return {
+        "planes": True,
+        "spheres": [{"diameter_m": d} for _, d in HALL_AXIS_SPHERES],
+        "distances_m": [
+            {"a": i, "b": j, "distance_m": float(np.linalg.norm(c[j] - c[i])), "u_distance_m": u_distance_m}
+            for i in range(n)
+            for j in range(i + 1, n)
+        ],
+    }
+
+
+def hall_spheres_axis() -> Scene:
+    """A workshop hall of six planes (``HALL_WALLS`` turned ``HALL_YAW_DEG`` about ``HALL_CENTRE``)
+    with the spheres of :data:`HALL_AXIS_SPHERES`."""
+    scene = Scene("hall-spheres-axis")
+    rot = _rot_z(np.deg2rad(HALL_YAW_DEG))
+    centre = np.array([HALL_CENTRE[0], HALL_CENTRE[1], 0.0])
+    w = HALL_WALLS
+    for wall, axis, value in (
+        ("wall_x_min", 0, w["x_min"] - centre[0]),
+        ("wall_x_max", 0, w["x_max"] - centre[0]),
+        ("wall_y_min", 1, w["y_min"] - centre[1]),
+        ("wall_y_max", 1, w["y_max"] - centre[1]),
+        ("floor", 2, w["z_min"]),
+        ("ceiling", 2, w["z_max"]),
+    ):
+        normal = np.zeros(3)
+        normal[axis] = -np.sign(value)  # facing the hall's centre
+        scene.add(Plane(centre + rot @ (-normal * abs(value)), rot @ normal), remission=0.5, name=wall)
+    for i, (c, diameter) in enumerate(HALL_AXIS_SPHERES):
+        scene.add(Sphere(c, diameter / 2), remission=0.8, name=f"sphere{i}")
+    return scene
+
+
 register_scene("seed003", seed003, "seed 003: 137.5 mm cylinder on a table 2.53 m along +y, floor, wall, clutter")
 register_scene(
     "seed003-room",
@@ -342,5 +407,10 @@ register_scene(
     "room-spheres-axis",
     room_spheres_axis,
     "calibration room for k1: 5 spheres of 0.5 m on and beside the shaft lines",
+)
+register_scene(
+    "hall-spheres-axis",
+    hall_spheres_axis,
+    "12 m workshop hall for k1: 4 spheres of 0.5 m, far ones 6.6-9.2 m out on the shaft lines",
 )
 register_scene("elbow", elbow, "a 90 deg pipe elbow, D 250 mm, A 350 mm, 1.8 m ahead; floor")
