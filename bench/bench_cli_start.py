@@ -209,7 +209,7 @@ def _start_times(reps: int, tmp: Path, baseline: Path | None, url: str, token: s
         ("lrms measure --help", cmd([*lrms, "measure", "--help"]), True),
         ("lrms fit imports", cmd([py, "-c", FIT_IMPORTS]), True),
         ("measure: command before the rig process", cmd([py, "-c", MEASURE_FIRST]), True),
-        ("measure: service imports (API thread)", cmd([py, "-c", "import service.api"]), True),
+        ("measure: service imports (API thread)", cmd([py, "-c", "import service.api.core"]), True),
         ("measure: rig process imports", cmd([py, "-c", "import service.rigproc, service.config, service.rig"]), True),
         ("measure: simulated rig imports + build", cmd([py, "-c", SIM_BUILD]), True),
         ("lrms fit 2k-point cloud", cmd([*lrms, "fit", str(small), "--no-line-of-sight", "--json"]), True),

@@ -21,28 +21,23 @@ import os
 import tempfile
 import threading
 from dataclasses import dataclass
+from functools import cache
 from pathlib import Path
-from typing import Any
-
-import jinja2
+from typing import TYPE_CHECKING, Any
 
 from lrms import __version__
 from service.config import RigConfig
 from service.errors import ServiceError
 from service.store import Measurement
 
+if TYPE_CHECKING:
+    import jinja2
+
 #: States that have a report (a failed measurement's report states the failure).
 REPORTABLE = frozenset({"done", "failed"})
 
 TEMPLATES = Path(__file__).parent / "templates"
 
-_env = jinja2.Environment(
-    loader=jinja2.FileSystemLoader(TEMPLATES),
-    autoescape=jinja2.select_autoescape(["html"]),
-    undefined=jinja2.StrictUndefined,
-    trim_blocks=True,
-    lstrip_blocks=True,
-)
 _plot_lock = threading.Lock()  # pyplot keeps global state: one figure at a time
 
 
@@ -170,7 +165,21 @@ def _deg(v: Any) -> str:
     return "-" if f is None else f"{f:.3f} deg"
 
 
-_env.filters.update(mm=_mm, num=_num, um=_um, utc=_utc, deg=_deg)
+@cache
+def _environment() -> jinja2.Environment:
+    """The templates' environment, made when the first report is rendered (jinja2 loads then, not
+    with the service)."""
+    import jinja2
+
+    env = jinja2.Environment(
+        loader=jinja2.FileSystemLoader(TEMPLATES),
+        autoescape=jinja2.select_autoescape(["html"]),
+        undefined=jinja2.StrictUndefined,
+        trim_blocks=True,
+        lstrip_blocks=True,
+    )
+    env.filters.update(mm=_mm, num=_num, um=_um, utc=_utc, deg=_deg)
+    return env
 
 
 def _values(result: dict[str, Any]) -> list[tuple[str, str]]:
@@ -242,7 +251,7 @@ def report_context(m: Measurement, config: RigConfig, plot: bool = True) -> dict
 
 def render_html(m: Measurement, config: RigConfig, plot: bool = True) -> str:
     """The report of ``m`` as one self-contained HTML page (:class:`ReportNotReady` when it has none)."""
-    return _env.get_template("report.html").render(**report_context(m, config, plot))
+    return _environment().get_template("report.html").render(**report_context(m, config, plot))
 
 
 def html_to_pdf(html: str) -> bytes:

@@ -744,7 +744,7 @@ if __name__ == "__main__":
 
 def _import_api() -> None:
     with contextlib.suppress(Exception):  # a failed import is raised again where it is used
-        import service.api  # noqa: F401
+        import service.api.core  # noqa: F401  (the Service; the app and its routes only for lrms serve)
 
 
 def isolated_service(config: RigConfig, open_rig: bool = True, *, log_level: str = "warning") -> tuple[Any, Any]:

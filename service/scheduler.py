@@ -22,8 +22,6 @@ import threading
 import time
 from datetime import UTC, datetime
 
-from croniter import croniter
-
 from service.errors import RequestFieldError
 from service.jobs import JobRunner, QueueFull
 from service.models import MeasurementRequest, ScheduledMeasurement, ScheduleRequest
@@ -37,6 +35,8 @@ log = logging.getLogger(__name__)
 def next_run(cron: str | None, interval_s: float | None, after: float) -> float:
     """The first due time strictly after ``after`` (epoch seconds)."""
     if cron is not None:
+        from croniter import croniter  # only when a cron schedule is parsed (not at the service's start)
+
         it = croniter(cron, datetime.fromtimestamp(after, tz=UTC))
         return float(it.get_next(float))
     if interval_s is None or interval_s <= 0:

@@ -10,7 +10,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from fastapi.responses import JSONResponse
+from starlette.responses import JSONResponse  # what fastapi.responses re-exports, without FastAPI itself
 
 from service.calstore import CalibrationStore
 from service.config import RigConfig

@@ -27,26 +27,55 @@ def test_measure_starts_the_rig_process_before_the_rig_code_api_and_store_load()
     process while the rig process boots (bench/bench_cli_start.py: the sweep's start). The rig
     process's code loads no store (SQLAlchemy, Alembic), no web stack, no simulator device code
     (a process = true rig opens the simulated rig's tcp:// and socketcand:// URLs) and no
-    calibration store (only when a calibration is applied); the service (``service.api``) loads
-    no ``lrms.calibration`` (scipy.spatial, scipy.special) until a calibration is read."""
+    calibration store (only when a calibration is applied); the service (``from service.api import
+    Service``, what the command uses) loads no ``lrms.calibration`` (scipy.spatial, scipy.special)
+    until a calibration is read, and none of what a measurement does not need: FastAPI and the
+    routes (``create_app``, ``lrms serve``), uvicorn (``lrms serve``), Alembic (a store not at the
+    newest schema), croniter (a cron schedule), jinja2 (a report)."""
     code = (
         "import sys\n"
         "import service.cli.measure, service.config, service.models, service.rigproc\n"
         "late = ('service.rig', 'service.api', 'service.store', 'service.jobs', 'fastapi', 'sqlalchemy', 'alembic',\n"
-        "        'scipy', 'service.calstore', 'lrms.calibration', 'scipy.optimize', 'sim.scanner', 'sim.scene')\n"
+        "        'scipy', 'service.calstore', 'lrms.calibration', 'scipy.optimize', 'sim.scanner', 'sim.scene',\n"
+        "        'service.api.core', 'service.api.app', 'uvicorn', 'croniter', 'jinja2', 'service.report')\n"
         "print('LOADED:', *[m for m in late if m in sys.modules])\n"
         "import service.rig\n"
         "print('LOADED:', *[m for m in late if m in sys.modules])\n"
-        "import service.api\n"
+        "from service.api import Service\n"
+        "print('LOADED:', *[m for m in late if m in sys.modules])\n"
+        "from service.api import create_app, ServerThread\n"
         "print('LOADED:', *[m for m in late if m in sys.modules])\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, check=True)
-    before, rig, api = (line.split() for line in out.stdout.strip().splitlines()[-3:])
+    before, rig, api, app = (line.split() for line in out.stdout.strip().splitlines()[-4:])
     assert before == ["LOADED:"], out.stdout
     assert "service.rig" in rig and "service.jobs" in rig  # the probe can see them
     assert rig == ["LOADED:", "service.rig", "service.jobs"], rig
-    assert {"service.api", "service.store", "fastapi", "sqlalchemy", "service.calstore"} <= set(api), api
+    assert {"service.api", "service.api.core", "service.store", "sqlalchemy", "service.calstore"} <= set(api), api
     assert not {"lrms.calibration", "scipy", "scipy.optimize"} & set(api), api
+    assert not {"fastapi", "service.api.app", "uvicorn", "alembic", "croniter", "jinja2"} & set(api), api
+    # the probe sees them when they do load: the app (its routes: the reports), and the server
+    assert {"fastapi", "service.api.app", "uvicorn", "service.report"} <= set(app), app
+    assert not {"jinja2", "croniter", "alembic"} & set(app), app
+
+
+def test_a_store_at_the_newest_schema_opens_without_alembic(tmp_path: Path) -> None:
+    """Opening a store migrates it with Alembic only when it is not at the newest revision: the
+    embedded ``lrms measure`` opens one already migrated without loading Alembic."""
+    code = (
+        "import sys\n"
+        "from service.store import Store\n"
+        f"Store({str(tmp_path / 'r.sqlite')!r}, 'rig')\n"
+        "print('LOADED:', *[m for m in ('alembic', 'sqlalchemy') if m in sys.modules])\n"
+    )
+    first, again = (
+        subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, check=True
+        ).stdout.split()
+        for _ in range(2)
+    )
+    assert first == ["LOADED:", "alembic", "sqlalchemy"], first  # a new file is migrated
+    assert again == ["LOADED:", "sqlalchemy"], again
 
 
 def test_measure_then_replay(tmp_path: Path) -> None:
