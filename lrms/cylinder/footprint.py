@@ -221,16 +221,16 @@ def _echo(
     wts = np.broadcast_to(_GL_G[None, :], xi.shape)
     k = xi.shape[1]
 
-    def cast(lateral: FloatArray) -> tuple[FloatArray, FloatArray]:
+    def cast(lateral: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         off = lateral[..., None] * nvec[:, None, :]
         so = o[:, None, :] + s0 * off
         su = u[:, None, :] + np.tan(sd) * off
         su = su / np.linalg.norm(su, axis=2, keepdims=True)
         t, _ = _ray_cylinder(so.reshape(-1, 3), su.reshape(-1, 3), a, w, np.asarray(radius))
-        return t.reshape(-1, k), su
+        return t.reshape(-1, k), so, su
 
-    t, su = cast(xi)
-    hit = o[:, None, :] + t[..., None] * su
+    t, so, su = cast(xi)
+    hit = so + t[..., None] * su  # each node's hit point, from its own start (the exit spot's offset)
     q = hit - a
     q = q - _dot(q, w)[..., None] * w
     cos = np.abs(_dot(q, su)) / np.maximum(np.linalg.norm(q, axis=2), 1e-300)
