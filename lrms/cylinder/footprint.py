@@ -630,7 +630,17 @@ def footprint_fit(
     dtheta = -jtj_inv @ (jac.T @ ((res_hi - res_lo) / 0.02))
     spot_sens = float(2.0 * dtheta[4])
     u_spot = abs(spot_sens) * optics.spot_scale_u
-    cyl = frame.cylinder(best.theta[:5]).with_point_near(pts[idx].mean(axis=0))
+    # Box's second-order bias of the chosen family's solution, subtracted (its own module)
+    from lrms.cylinder.footprint_bias import corrected
+
+    theta, bias_extra = corrected(
+        best.mode,
+        best.theta,
+        lambda th: _residuals(th, frame, best.rays, optics, best.mode),
+        jac,
+        jtj_inv * max(1.0, chi2_dof),
+    )
+    cyl = frame.cylinder(theta[:5]).with_point_near(pts[idx].mean(axis=0))
     return replace(
         fit,
         cylinder=cyl,
@@ -650,6 +660,7 @@ def footprint_fit(
             "footprint_u_jtj_m": float(2.0 * np.sqrt(max(var_jtj, 0.0))),
             "footprint_u_profile_m": float(2.0 * np.sqrt(max(var_prof, 0.0))),
             "footprint_profile_scale": float(prof_scale),
+            **bias_extra,
             **(
                 {}
                 if prof is None
