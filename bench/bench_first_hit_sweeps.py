@@ -76,7 +76,10 @@ def main(argv: list[str] | None = None) -> None:
             continue
         x = fit.extra
         u = float(
-            np.sqrt(gum_interval(fit).std ** 2 + x.get("edge_model_u_m", 0.0) ** 2 + x.get("edge_family_u_m", 0.0) ** 2)
+            np.sqrt(
+                gum_interval(fit).std ** 2
+                + sum(x.get(k, 0.0) ** 2 for k in ("edge_model_u_m", "edge_family_u_m", "footprint_bias_u_m"))
+            )
         )
         e = fit.diameter - diameter
         errs.append(e)

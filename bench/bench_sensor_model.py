@@ -258,7 +258,12 @@ def run_case(g: Geometry, draw: Draw, sweeps: int, cloud: str, seed: int, fits: 
             x = fit.extra
             u_fit = gum_interval(fit).std
             row.u.append(
-                float(np.sqrt(u_fit**2 + x.get("edge_model_u_m", 0.0) ** 2 + x.get("edge_family_u_m", 0.0) ** 2))
+                float(
+                    np.sqrt(
+                        u_fit**2
+                        + sum(x.get(k, 0.0) ** 2 for k in ("edge_model_u_m", "edge_family_u_m", "footprint_bias_u_m"))
+                    )
+                )
             )
         done = len(rows[fits[0]].errors) + rows[fits[0]].failed + rows[fits[0]].gross
         if PROGRESS and done % PROGRESS == 0:

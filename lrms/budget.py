@@ -374,6 +374,7 @@ SOURCES = (
     "temperature drift",
     "footprint / edge model",
     "edge family (model choice)",
+    "footprint bias correction",
     "alpha zero",
     "alpha noise",
     "beta noise",
@@ -496,6 +497,24 @@ def _family_row(fit: CylinderFit) -> BudgetRow:
     )
 
 
+def _footprint_bias_row(fit: CylinderFit) -> BudgetRow:
+    """The footprint fit's second-order (Box) bias correction, subtracted from the diameter: its own
+    standard uncertainty (``fit.extra["footprint_bias_u_m"]``, lrms/cylinder/footprint_bias.py)."""
+    if "footprint_bias_u_m" not in fit.extra:
+        return _not_evaluated("footprint bias correction", "no footprint fit: no footprint bias correction was applied")
+    corr = float(fit.extra.get("bias_correction_diameter_m", 0.0))
+    return BudgetRow.of(
+        "footprint bias correction",
+        "B",
+        float(fit.extra["footprint_bias_u_m"]),
+        "m",
+        1.0,
+        "rectangular",
+        f"Box's second-order noise bias of the footprint fit, {corr * 1e3:+.3f} mm subtracted from the diameter;"
+        " the true bias taken as between none and twice that (fit.extra['footprint_bias_u_m'])",
+    )
+
+
 def cylinder_budget(
     fit: CylinderFit,
     rays: Rays | None = None,
@@ -569,6 +588,7 @@ def cylinder_budget(
             ),
             _edge_row(fit),
             _family_row(fit),
+            _footprint_bias_row(fit),
             BudgetRow.of(
                 "alpha zero",
                 "B",
@@ -625,7 +645,7 @@ def cylinder_budget(
             ),
         ]
     else:
-        rows += [_edge_row(fit), _family_row(fit)]
+        rows += [_edge_row(fit), _family_row(fit), _footprint_bias_row(fit)]
     if calibration is not None:
         rows = [r for r in rows if r.source not in calibration.replaces]
         rows.append(calibration.row())
@@ -637,7 +657,9 @@ def cylinder_budget(
 
 #: Rows whose inputs the Monte Carlo replicas draw on the beams themselves (the others, given as a
 #: diameter contribution, are drawn as a normal error of the replica's diameter).
-BEAM_SOURCES = tuple(s for s in SOURCES if s not in ("footprint / edge model", "edge family (model choice)"))
+BEAM_SOURCES = tuple(
+    s for s in SOURCES if s not in ("footprint / edge model", "edge family (model choice)", "footprint bias correction")
+)
 
 
 def _draw(dist: str, u: float, shape: tuple[int, ...], rng: np.random.Generator) -> FloatArray:

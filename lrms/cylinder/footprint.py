@@ -221,16 +221,16 @@ def _echo(
     wts = np.broadcast_to(_GL_G[None, :], xi.shape)
     k = xi.shape[1]
 
-    def cast(lateral: FloatArray) -> tuple[FloatArray, FloatArray]:
+    def cast(lateral: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         off = lateral[..., None] * nvec[:, None, :]
         so = o[:, None, :] + s0 * off
         su = u[:, None, :] + np.tan(sd) * off
         su = su / np.linalg.norm(su, axis=2, keepdims=True)
         t, _ = _ray_cylinder(so.reshape(-1, 3), su.reshape(-1, 3), a, w, np.asarray(radius))
-        return t.reshape(-1, k), su
+        return t.reshape(-1, k), so, su
 
-    t, su = cast(xi)
-    hit = o[:, None, :] + t[..., None] * su
+    t, so, su = cast(xi)
+    hit = so + t[..., None] * su  # each node's hit point, from its own start (the exit spot's offset)
     q = hit - a
     q = q - _dot(q, w)[..., None] * w
     cos = np.abs(_dot(q, su)) / np.maximum(np.linalg.norm(q, axis=2), 1e-300)
@@ -660,7 +660,17 @@ def footprint_fit(
     dtheta = -jtj_inv @ (jac.T @ ((res_hi - res_lo) / 0.02))
     spot_sens = float(2.0 * dtheta[4])
     u_spot = abs(spot_sens) * optics.spot_scale_u
-    cyl = frame.cylinder(best.theta[:5]).with_point_near(pts[idx].mean(axis=0))
+    # Box's second-order bias of the chosen family's solution, subtracted (its own module)
+    from lrms.cylinder.footprint_bias import corrected
+
+    theta, bias_extra = corrected(
+        best.mode,
+        best.theta,
+        lambda th: _residuals(th, frame, best.rays, optics, best.mode),
+        jac,
+        jtj_inv * max(1.0, chi2_dof),
+    )
+    cyl = frame.cylinder(theta[:5]).with_point_near(pts[idx].mean(axis=0))
     return replace(
         fit,
         cylinder=cyl,
@@ -680,6 +690,7 @@ def footprint_fit(
             "footprint_u_jtj_m": float(2.0 * np.sqrt(max(var_jtj, 0.0))),
             "footprint_u_profile_m": float(2.0 * np.sqrt(max(var_prof, 0.0))),
             "footprint_profile_scale": float(prof_scale),
+            **bias_extra,
             **(
                 {}
                 if prof is None

@@ -70,6 +70,7 @@ def test_fit_without_line_of_sight_is_the_biased_orthogonal_fit(
         "fit (type A)",
         "footprint / edge model",
         "edge family (model choice)",
+        "footprint bias correction",
     ]
     assert out["bias_correction_m"] is None  # defined for the line-of-sight fit only
     # on this rig's one-sided view the orthogonal fit comes out several mm small
