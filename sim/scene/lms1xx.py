@@ -57,6 +57,11 @@ LMS1XX_SYSTEMATIC_MAX = 0.040
 RangeMode = Literal["weighted", "first"]
 EchoFilter = Literal["first", "last"]
 _GOLDEN_ANGLE = float(np.pi * (3.0 - np.sqrt(5.0)))
+#: Sub-rays per chunk of echo formation (at most ``chunk_rays``): about 30 working arrays of 0.5 MB
+#: each, which stay in cache and need no fresh pages from the system per chunk.
+_ECHO_CHUNK_RAYS = 1 << 16
+#: Entries per sub-ray up to which a chunk's (echo, object) energy table is dense (:func:`_main_object`).
+_DENSE_OBJECT_TABLE = 4
 
 
 def _check(name: str, value: float, lo: float = 0.0, hi: float = np.inf, lo_open: bool = False) -> None:
@@ -296,9 +301,9 @@ class LMS1xxSensor:
     ) -> Echoes:
         """Echo formation, systematics and noise from the sub-ray hits (``time_s``: per beam or None).
 
-        The echoes are formed in chunks of ``chunk_rays`` sub-rays (whole beams), so the working
-        arrays stay a few tens of MB whatever the number of beams; the noise is drawn once for all
-        beams afterwards (the same draws as one chunk: the result does not depend on the chunking).
+        The echoes are formed in chunks of at most ``chunk_rays`` and 2^16 sub-rays (whole beams),
+        so the working arrays stay small whatever the number of beams; the noise is drawn once for
+        all beams afterwards (the same draws as without chunks: the result does not depend on them).
         """
         n, k = hits.range.shape
         if k != self.footprint.sub_rays:
@@ -306,7 +311,7 @@ class LMS1xxSensor:
         times = None if time_s is None else np.broadcast_to(np.asarray(time_s, dtype=np.float64), (n,))
         _, _, w = self.footprint.pattern()
         one, two = _Picked.empty(n), _Picked.empty(n)
-        step = max(1, self.chunk_rays // k)
+        step = max(1, min(self.chunk_rays, _ECHO_CHUNK_RAYS) // k)
         for lo in range(0, n, step):
             hi = min(n, lo + step)
             part = SubRayHits(hits.range[lo:hi], hits.index[lo:hi], hits.cos_incidence[lo:hi], hits.remission[lo:hi])
@@ -543,15 +548,28 @@ def make_sensor(name: str, sigma_l: float | None = None, sigma_alpha: float | No
 
 def _main_object(cluster: NDArray[np.intp], obj: NDArray[np.intp], energy: FloatArray, size: int) -> NDArray[np.intp]:
     """Per cluster ``0..size-1``: the object (index >= 0) whose sub-rays carry most of the energy
-    (the lowest index on a tie; -1 without a hit). Sparse: only the (cluster, object) pairs that
-    occur are summed (a dense ``(clusters, objects)`` table is clusters x objects floats)."""
+    (the lowest index on a tie; -1 without a hit). ``cluster`` must be non-decreasing.
+
+    The energy is summed per (cluster, object) over the clusters with a hit only: a dense table
+    (hit clusters x objects) while it holds at most :data:`_DENSE_OBJECT_TABLE` entries per
+    sub-ray, else over the pairs that occur (sorted keys), so memory stays bounded by the chunk.
+    """
     out = np.full(size, -1, dtype=np.intp)
     hit = obj >= 0
     if not hit.any():
         return out
     objects = int(obj.max()) + 1
-    pairs, inverse = np.unique(cluster[hit].astype(np.int64) * objects + obj[hit], return_inverse=True)
-    sums = np.bincount(inverse.ravel(), weights=energy[hit], minlength=pairs.size)
+    ch, oh, eh = cluster[hit], obj[hit], energy[hit]
+    change = np.ones(ch.size, dtype=bool)
+    change[1:] = ch[1:] != ch[:-1]
+    owners = ch[change]  # the clusters with a hit, in order
+    if owners.size * objects <= _DENSE_OBJECT_TABLE * cluster.size:
+        rank = np.cumsum(change) - 1
+        table = np.bincount(rank * objects + oh, weights=eh, minlength=owners.size * objects)
+        out[owners] = np.argmax(table.reshape(owners.size, objects), axis=1)
+        return out
+    pairs, inverse = np.unique(ch.astype(np.int64) * objects + oh, return_inverse=True)
+    sums = np.bincount(inverse.ravel(), weights=eh, minlength=pairs.size)
     owner = pairs // objects
     best = np.lexsort((-sums, owner))  # per cluster: most energy first, ties by object (stable)
     lead = np.ones(best.size, dtype=bool)
