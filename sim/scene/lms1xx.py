@@ -15,7 +15,8 @@ noise. Up to two echoes per beam are kept (DIST1/DIST2 with RSSI1/RSSI2, manual 
 
 Everything is vectorized: beams are processed in chunks of ``chunk_rays`` sub-rays, the sub-ray
 hits of a chunk are one :meth:`Scene.raycast`, and the echoes are formed with sorting and
-``bincount`` over the ``(beams, sub_rays)`` arrays. The parameters SICK does not publish (edge
+``bincount`` over the ``(beams, sub_rays)`` arrays of chunks of at most 2^16 sub-rays (bounded
+memory; the same result as one piece). The parameters SICK does not publish (edge
 threshold, echo separation, the forms of the systematic terms) are ours and say so; see
 ``docs/sensor-model.md``.
 """
