@@ -59,7 +59,7 @@ RangeMode = Literal["weighted", "first"]
 EchoFilter = Literal["first", "last"]
 _GOLDEN_ANGLE = float(np.pi * (3.0 - np.sqrt(5.0)))
 #: Sub-rays per chunk of echo formation (at most ``chunk_rays``): about 30 working arrays of 0.5 MB
-#: each, which stay in cache and need no fresh pages from the system per chunk.
+#: each, reused by the allocator from chunk to chunk (few fresh pages: little system time).
 _ECHO_CHUNK_RAYS = 1 << 16
 #: Entries per sub-ray up to which a chunk's (echo, object) energy table is dense (:func:`_main_object`).
 _DENSE_OBJECT_TABLE = 4
