@@ -15,7 +15,8 @@ noise. Up to two echoes per beam are kept (DIST1/DIST2 with RSSI1/RSSI2, manual 
 
 Everything is vectorized: beams are processed in chunks of ``chunk_rays`` sub-rays, the sub-ray
 hits of a chunk are one :meth:`Scene.raycast`, and the echoes are formed with sorting and
-``bincount`` over the ``(beams, sub_rays)`` arrays. The parameters SICK does not publish (edge
+``bincount`` over the ``(beams, sub_rays)`` arrays of chunks of at most 2^16 sub-rays (bounded
+memory; the same result as one piece). The parameters SICK does not publish (edge
 threshold, echo separation, the forms of the systematic terms) are ours and say so; see
 ``docs/sensor-model.md``.
 """
@@ -57,6 +58,11 @@ LMS1XX_SYSTEMATIC_MAX = 0.040
 RangeMode = Literal["weighted", "first"]
 EchoFilter = Literal["first", "last"]
 _GOLDEN_ANGLE = float(np.pi * (3.0 - np.sqrt(5.0)))
+#: Sub-rays per chunk of echo formation (at most ``chunk_rays``): about 30 working arrays of 0.5 MB
+#: each, reused by the allocator from chunk to chunk (few fresh pages: little system time).
+_ECHO_CHUNK_RAYS = 1 << 16
+#: Entries per sub-ray up to which a chunk's (echo, object) energy table is dense (:func:`_main_object`).
+_DENSE_OBJECT_TABLE = 4
 
 
 def _check(name: str, value: float, lo: float = 0.0, hi: float = np.inf, lo_open: bool = False) -> None:
@@ -294,13 +300,38 @@ class LMS1xxSensor:
     def form_echoes(
         self, hits: SubRayHits, rng: np.random.Generator | None, time_s: FloatArray | None = None
     ) -> Echoes:
-        """Echo formation, systematics and noise from the sub-ray hits (``time_s``: per beam or None)."""
+        """Echo formation, systematics and noise from the sub-ray hits (``time_s``: per beam or None).
+
+        The echoes are formed in chunks of at most ``chunk_rays`` and 2^16 sub-rays (whole beams),
+        so the working arrays stay small whatever the number of beams; the noise is drawn once for
+        all beams afterwards (the same draws as without chunks: the result does not depend on them).
+        """
         n, k = hits.range.shape
         if k != self.footprint.sub_rays:
             raise SceneError(f"sub-ray hits have {k} sub-rays per beam, the footprint {self.footprint.sub_rays}")
         times = None if time_s is None else np.broadcast_to(np.asarray(time_s, dtype=np.float64), (n,))
         _, _, w = self.footprint.pattern()
-        c = _clusters(hits, w, self.echo_separation_m, self.range_min, self.edge_threshold)
+        one, two = _Picked.empty(n), _Picked.empty(n)
+        step = max(1, min(self.chunk_rays, _ECHO_CHUNK_RAYS) // k)
+        for lo in range(0, n, step):
+            hi = min(n, lo + step)
+            part = SubRayHits(hits.range[lo:hi], hits.index[lo:hi], hits.cos_incidence[lo:hi], hits.remission[lo:hi])
+            c = _clusters(part, w, self.echo_separation_m, self.range_min, self.edge_threshold)
+            self._pick_echoes(c, one, two, lo)
+        first = self._echo(one, rng, times)
+        second = self._echo(two, rng, times)
+        return dataclasses.replace(
+            first,
+            range2=second.range,
+            valid2=second.valid,
+            true_range2=second.true_range,
+            index2=second.index,
+            rssi2=second.rssi,
+        )
+
+    def _pick_echoes(self, c: _Clusters, one: _Picked, two: _Picked, lo: int) -> None:
+        """Detect the clusters ``c`` of beams ``lo..`` and store their DIST1 / DIST2 echoes."""
+        m, k = c.weight.shape
         r_echo = c.first_range if self.range_mode == "first" else c.weighted_range
         det = (
             (c.weight > 0)
@@ -310,70 +341,48 @@ class LMS1xxSensor:
             & (r_echo >= self.range_min)
             & (r_echo <= self.range_max)
         )
-        rows = np.arange(n)
+        rows = np.arange(m)
         any1: NDArray[np.bool_] = np.asarray(det.any(axis=1), dtype=bool)
         c1 = np.argmax(det, axis=1)
         rest = det.copy()
         rest[rows, c1] = False
         any2: NDArray[np.bool_] = np.asarray(rest.any(axis=1), dtype=bool)
         c2 = np.argmax(rest, axis=1)
-        last = k - 1 - np.argmax(det[:, ::-1], axis=1)
         if self.echo_filter == "first":
-            primary, secondary = (c1, any1), (c2, any2)
+            one.put(lo, c, r_echo, rows, c1, any1)
+            two.put(lo, c, r_echo, rows, c2, any2)
         else:
-            primary, secondary = (last, any1), (c1, any2)
-        one = self._echo(c, r_echo, rows, *primary, rng, times)
-        two = self._echo(c, r_echo, rows, *secondary, rng, times)
-        return dataclasses.replace(
-            one,
-            range2=two.range,
-            valid2=two.valid,
-            true_range2=two.true_range,
-            index2=two.index,
-            rssi2=two.rssi,
-        )
+            one.put(lo, c, r_echo, rows, k - 1 - np.argmax(det[:, ::-1], axis=1), any1)
+            two.put(lo, c, r_echo, rows, c1, any2)
 
-    def _echo(
-        self,
-        c: _Clusters,
-        r_echo: FloatArray,
-        rows: NDArray[np.intp],
-        col: NDArray[np.intp],
-        present: NDArray[np.bool_],
-        rng: np.random.Generator | None,
-        time_s: FloatArray | None,
-    ) -> Echoes:
-        """One reported echo per beam (cluster ``col`` where ``present``): systematics, noise, RSSI."""
-        energy = np.where(present, c.energy[rows, col], 0.0)
-        weight = np.where(present, c.weight[rows, col], 0.0)
-        cos = np.where(present, c.cos[rows, col], 0.0)
-        true = np.where(present, r_echo[rows, col], np.inf)
-        spread = np.where(present, c.spread[rows, col], 0.0)
-        e_safe = np.where(present, energy, 1.0)
-        t_safe = np.where(present, true, 1.0)
-        rng_out = self.systematics.apply(t_safe, e_safe, cos, time_s)
+    def _echo(self, p: _Picked, rng: np.random.Generator | None, time_s: FloatArray | None) -> Echoes:
+        """One reported echo per beam (``p``, where ``p.present``): systematics, noise, RSSI."""
+        present = p.present
+        e_safe = np.where(present, p.energy, 1.0)
+        t_safe = np.where(present, p.true_range, 1.0)
+        rng_out = self.systematics.apply(t_safe, e_safe, p.cos, time_s)
         if rng is not None:
             var = (
                 self.sigma_typical**2
                 + (self.sigma_max**2 - self.sigma_typical**2) * np.minimum(1.0, self.min_energy / e_safe)
-                + (self.spread_noise * spread) ** 2
+                + (self.spread_noise * p.spread) ** 2
             )
             rng_out = rng_out + rng.standard_normal(rng_out.shape) * np.sqrt(var)
         if self.quantum > 0:
             rng_out = np.round(rng_out / self.quantum) * self.quantum
         rng_out = np.where(present, np.maximum(rng_out, 0.0), 0.0)
         atten = np.minimum(1.0, self.rssi_reference_m / t_safe) ** self.rssi_range_exponent
-        rssi = np.where(present, self.rssi_gain * c.wrc[rows, col] * atten, 0.0)
+        rssi = np.where(present, self.rssi_gain * p.wrc * atten, 0.0)
         return Echoes(
             range=np.asarray(rng_out, dtype=np.float64),
-            valid=np.asarray(present, dtype=bool),
-            true_range=true,
-            index=np.asarray(np.where(present, c.index[rows, col], -1), dtype=np.intp),
-            cos_incidence=cos,
-            remission=np.where(present, c.remission[rows, col], 0.0),
+            valid=present,
+            true_range=p.true_range,
+            index=p.index,
+            cos_incidence=p.cos,
+            remission=p.remission,
             rssi=rssi,
-            coverage=weight,
-            energy=energy,
+            coverage=p.weight,
+            energy=p.energy,
         )
 
 
@@ -401,6 +410,48 @@ class _Clusters:
     remission: FloatArray  # weight-weighted mean remission
     wrc: FloatArray  # sum of weight * remission * cos (no range term)
     index: NDArray[np.intp]  # the object that returned most of the echo's energy
+
+
+@dataclass(frozen=True)
+class _Picked:
+    """One reported echo per beam, arrays ``(N,)``; beams without it: 0 (``true_range`` inf,
+    ``index`` -1). Filled chunk by chunk from :class:`_Clusters` (:meth:`put`)."""
+
+    present: NDArray[np.bool_]
+    energy: FloatArray
+    weight: FloatArray
+    cos: FloatArray
+    true_range: FloatArray
+    spread: FloatArray
+    wrc: FloatArray
+    remission: FloatArray
+    index: NDArray[np.intp]
+
+    @staticmethod
+    def empty(n: int) -> _Picked:
+        e, w, c, t, s, a, r = (np.empty(n) for _ in range(7))
+        return _Picked(np.empty(n, dtype=bool), e, w, c, t, s, a, r, np.empty(n, dtype=np.intp))
+
+    def put(
+        self,
+        lo: int,
+        c: _Clusters,
+        r_echo: FloatArray,
+        rows: NDArray[np.intp],
+        col: NDArray[np.intp],
+        present: NDArray[np.bool_],
+    ) -> None:
+        """Beams ``lo..lo + len(rows)``: cluster ``col`` of each row of ``c`` where ``present``."""
+        s = slice(lo, lo + rows.size)
+        self.present[s] = present
+        self.energy[s] = np.where(present, c.energy[rows, col], 0.0)
+        self.weight[s] = np.where(present, c.weight[rows, col], 0.0)
+        self.cos[s] = np.where(present, c.cos[rows, col], 0.0)
+        self.true_range[s] = np.where(present, r_echo[rows, col], np.inf)
+        self.spread[s] = np.where(present, c.spread[rows, col], 0.0)
+        self.wrc[s] = np.where(present, c.wrc[rows, col], 0.0)
+        self.remission[s] = np.where(present, c.remission[rows, col], 0.0)
+        self.index[s] = np.where(present, c.index[rows, col], -1)
 
 
 def _clusters(hits: SubRayHits, w: FloatArray, separation: float, range_min: float, threshold: float) -> _Clusters:
@@ -448,11 +499,7 @@ def _clusters(hits: SubRayHits, w: FloatArray, separation: float, range_min: flo
     crossing = hit.ravel() & (inside >= level) & (inside - ws.ravel() < level)
     first = np.full(size, np.inf)
     first[flat[crossing]] = ts.ravel()[crossing]
-    objects = int(idx.max()) + 1 if idx.size else 0
-    per_object = np.bincount(
-        flat * (objects + 1) + (idx.ravel() + 1), weights=es.ravel(), minlength=size * (objects + 1)
-    ).reshape(size, objects + 1)[:, 1:]
-    index = np.where(energy.ravel() > 0, np.argmax(per_object, axis=1), -1) if objects else np.full(size, -1)
+    index = np.where(energy.ravel() > 0, _main_object(flat, idx.ravel(), es.ravel(), size), -1)
     return _Clusters(
         weight=weight,
         energy=energy,
@@ -498,3 +545,35 @@ def make_sensor(name: str, sigma_l: float | None = None, sigma_alpha: float | No
             sigma_beta=base.sigma_beta if sigma_beta is None else float(sigma_beta),
         )
     raise SceneError(f"unknown sensor model {name!r} (known: {', '.join(SENSOR_NAMES)})")
+
+
+def _main_object(cluster: NDArray[np.intp], obj: NDArray[np.intp], energy: FloatArray, size: int) -> NDArray[np.intp]:
+    """Per cluster ``0..size-1``: the object (index >= 0) whose sub-rays carry most of the energy
+    (the lowest index on a tie; -1 without a hit). ``cluster`` must be non-decreasing.
+
+    The energy is summed per (cluster, object) over the clusters with a hit only: a dense table
+    (hit clusters x objects) while it holds at most :data:`_DENSE_OBJECT_TABLE` entries per
+    sub-ray, else over the pairs that occur (sorted keys), so memory stays bounded by the chunk.
+    """
+    out = np.full(size, -1, dtype=np.intp)
+    hit = obj >= 0
+    if not hit.any():
+        return out
+    objects = int(obj.max()) + 1
+    ch, oh, eh = cluster[hit], obj[hit], energy[hit]
+    change = np.ones(ch.size, dtype=bool)
+    change[1:] = ch[1:] != ch[:-1]
+    owners = ch[change]  # the clusters with a hit, in order
+    if owners.size * objects <= _DENSE_OBJECT_TABLE * cluster.size:
+        rank = np.cumsum(change) - 1
+        table = np.bincount(rank * objects + oh, weights=eh, minlength=owners.size * objects)
+        out[owners] = np.argmax(table.reshape(owners.size, objects), axis=1)
+        return out
+    pairs, inverse = np.unique(ch.astype(np.int64) * objects + oh, return_inverse=True)
+    sums = np.bincount(inverse.ravel(), weights=eh, minlength=pairs.size)
+    owner = pairs // objects
+    best = np.lexsort((-sums, owner))  # per cluster: most energy first, ties by object (stable)
+    lead = np.ones(best.size, dtype=bool)
+    lead[1:] = owner[best[1:]] != owner[best[:-1]]
+    out[owner[best[lead]]] = pairs[best[lead]] % objects
+    return out

@@ -25,7 +25,7 @@ from sim.scene import (
     lms1xx_device_angles,
     make_sensor,
 )
-from sim.scene.lms1xx import LMS1XX_MIN_ENERGY
+from sim.scene.lms1xx import LMS1XX_MIN_ENERGY, EchoFilter, SubRayHits
 
 ORIGIN = np.zeros((1, 3))
 AHEAD = np.array([[0.0, 1.0, 0.0]])
@@ -244,3 +244,32 @@ def test_room_scene_and_part_in_room() -> None:
         part_in_room(-0.1, 3.0)
     with pytest.raises(SceneError):
         part_in_room(0.3, 0.2)
+
+
+@pytest.mark.parametrize(("echo_filter", "objects"), [("first", 3), ("last", 3), ("first", 400), ("last", 400)])
+def test_an_echo_belongs_to_the_object_returning_most_of_its_energy(echo_filter: EchoFilter, objects: int) -> None:
+    """Hand-made sub-ray hits, one echo per beam over several objects: the echo's index is the
+    object whose sub-rays carry most of its energy (the lowest index on a tie), whatever the
+    chunking. 3 objects: the dense (echo, object) table; 400: the sparse sum over sorted pairs."""
+    k, n = 16, 60
+    sensor = LMS1xxSensor(footprint=Footprint(sub_rays=k), edge_threshold=0.0, min_energy=0.0, echo_filter=echo_filter)
+    rng = np.random.default_rng(3)
+    t = 2.0 + 0.01 * rng.random((n, k))
+    idx = rng.integers(0, objects, (n, k))
+    cos = rng.uniform(0.2, 1.0, (n, k))
+    rem = rng.uniform(0.1, 1.0, (n, k))
+    miss = rng.random((n, k)) < 0.1
+    t[miss], idx[miss], cos[miss], rem[miss] = np.inf, -1, 0.0, 0.0
+    t[0], idx[0], cos[0], rem[0] = 2.0, [objects - 1, 1] * (k // 2), 1.0, 0.5  # two objects return equally
+    hits = SubRayHits(t, idx, cos, rem)
+    e = sensor.form_echoes(hits, np.random.default_rng(1))
+    hit = ~miss
+    hit[0] = True
+    per_object = np.zeros((n, objects))
+    np.add.at(per_object, (np.nonzero(hit)[0], idx[hit]), (rem * cos / t**2)[hit] / k)
+    assert e.valid.all() and e.valid2 is not None and not e.valid2.any()
+    np.testing.assert_array_equal(e.index, np.argmax(per_object, axis=1))
+    assert e.index[0] == 1
+    beam_by_beam = dataclasses.replace(sensor, chunk_rays=k).form_echoes(hits, np.random.default_rng(1))
+    for name, value in dataclasses.asdict(e).items():
+        np.testing.assert_array_equal(getattr(beam_by_beam, name), value, err_msg=name)
