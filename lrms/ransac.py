@@ -60,6 +60,7 @@ def ransac(
     refine: bool = True,
     rng: np.random.Generator | None = None,
     batch: int = 0,
+    verify_sample: bool = True,
 ) -> tuple[M, BoolArray]:
     """Robustly fit ``model_class`` to the rows of ``data``.
 
@@ -70,7 +71,12 @@ def ransac(
     ``batch`` > 0 (for a model class with the :class:`BatchModel` class methods, and no
     ``is_model_valid``): hypotheses are drawn, estimated and scored ``batch`` at a time as arrays
     (samples with a repeated row count as degenerate trials); the trial count adapts after each
-    batch, so up to ``batch - 1`` more trials than one at a time may run.
+    batch, so up to ``batch - 1`` more trials than one at a time may run. With ``verify_sample``
+    (batch mode only) a hypothesis whose own minimal sample is not all inliers of it (within
+    ``residual_threshold``) is dropped before it is scored: it still counts as a trial. Such a
+    hypothesis is almost never the best of its batch (a sample off its own model is not drawn
+    from one structure), and dropping it spares its scoring on ``score_size`` rows; for a plane
+    with normals in the rows most random triples fail it (their normals disagree with the plane).
     """
     x = np.asarray(data, dtype=np.float64)
     n = x.shape[0]
@@ -104,10 +110,16 @@ def ransac(
         if not np.any(valid):
             continue
         params = params[valid]
-        if hasattr(model_class, "batch_inlier_residuals"):
-            res = model_class.batch_inlier_residuals(params, scored, residual_threshold)
-        else:
-            res = model_class.batch_residuals(params, scored)  # type: ignore[attr-defined]
+        if verify_sample:
+            # a hypothesis must hold its own sample (the T(d,d) test): the rest are not scored
+            own = _batch_scores(model_class, params, x[picks[valid]].reshape(-1, x.shape[1]), residual_threshold)
+            v = params.shape[0]
+            held = own.reshape(v, v, min_samples)[np.arange(v), np.arange(v)] < residual_threshold
+            keep = 2 * np.count_nonzero(held, axis=1) > min_samples
+            if not np.any(keep):
+                continue
+            params = params[keep]
+        res = _batch_scores(model_class, params, scored, residual_threshold)
         inl = res < residual_threshold
         counts = np.count_nonzero(inl, axis=1)
         ssrs = np.sum(np.where(inl, res * res, 0.0), axis=1)
@@ -145,6 +157,15 @@ def ransac(
             if np.count_nonzero(mask2) >= np.count_nonzero(mask):
                 return final, mask2
     return best_model, mask
+
+
+def _batch_scores(model_class: object, params: FloatArray, data: FloatArray, threshold: float) -> FloatArray:
+    """``(B, m)`` residuals of ``B`` hypotheses on ``data`` (``inf`` allowed above ``threshold``)."""
+    if hasattr(model_class, "batch_inlier_residuals"):
+        res = model_class.batch_inlier_residuals(params, data, threshold)
+    else:
+        res = model_class.batch_residuals(params, data)  # type: ignore[attr-defined]
+    return np.asarray(res, dtype=np.float64)
 
 
 class BatchModel(Protocol):
