@@ -116,9 +116,14 @@ def ransac(
         params = params[valid]
         if verify_sample:
             # a hypothesis must hold most of its own sample (a T(d,d) test): the rest are not scored
-            own = _batch_scores(model_class, params, samples[valid].reshape(-1, x.shape[1]), residual_threshold)
-            v = params.shape[0]
-            held = own.reshape(v, v, min_samples)[np.arange(v), np.arange(v)] < residual_threshold
+            by_sample = getattr(model_class, "batch_sample_residuals", None)
+            if by_sample is not None:
+                own = by_sample(params, samples[valid], residual_threshold)
+            else:  # all hypotheses on all samples' rows, of which the (v, s) diagonal blocks
+                v = params.shape[0]
+                own = _batch_scores(model_class, params, samples[valid].reshape(-1, x.shape[1]), residual_threshold)
+                own = own.reshape(v, v, min_samples)[np.arange(v), np.arange(v)]
+            held = own < residual_threshold
             keep = 2 * np.count_nonzero(held, axis=1) > min_samples
             if not np.any(keep):
                 continue
@@ -303,6 +308,17 @@ class PlaneModel:
             out[near] = res[near] + cls.normal_weight * np.arccos(np.minimum(cos[near], 1.0))
             return out
         return np.asarray(res, dtype=np.float64)
+
+    @classmethod
+    def batch_sample_residuals(cls, params: FloatArray, samples: FloatArray, threshold: float) -> FloatArray:
+        """The residuals ``(B, s)`` of each of ``B`` planes on the rows of its own sample
+        ``(B, s, d)`` (for :func:`ransac`'s sample check; ``inf`` where above ``threshold``)."""
+        n = params[:, None, :3]
+        res = np.abs(np.sum(samples[:, :, :3] * n, axis=2) - params[:, 3:4])
+        if cls.normal_weight > 0 and samples.shape[2] >= 6:
+            cos = np.minimum(np.abs(np.sum(samples[:, :, 3:6] * n, axis=2)), 1.0)
+            res = res + cls.normal_weight * np.arccos(cos)
+        return np.asarray(np.where(res < threshold, res, np.inf), dtype=np.float64)
 
     @classmethod
     def from_params(cls, row: FloatArray) -> PlaneModel:

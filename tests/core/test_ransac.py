@@ -96,12 +96,15 @@ def test_batched_sample_check_scores_fewer_hypotheses_and_finds_the_same_plane()
                 scored.append(params.shape[0])
             return super().batch_inlier_residuals(params, rows, threshold)
 
+    class Generic(Counted):  # the sample check from the generic (B, B * 3) scoring
+        batch_sample_residuals = None  # type: ignore[assignment]
+
     masks = []
-    for check in (False, True):
+    for check, model in ((False, Counted), (True, Counted), (True, Generic)):
         scored.clear()
         _, mask = ransac(
             data,
-            Counted,
+            model,
             3,
             0.01,
             max_trials=400,
@@ -115,5 +118,5 @@ def test_batched_sample_check_scores_fewer_hypotheses_and_finds_the_same_plane()
             assert sum(scored) < 0.2 * 400  # most random triples fail the check
         else:
             assert sum(scored) > 0.9 * 400
-    assert np.array_equal(masks[0], masks[1])
+    assert np.array_equal(masks[0], masks[1]) and np.array_equal(masks[1], masks[2])
     assert np.count_nonzero(masks[1][:600]) >= 290 and np.count_nonzero(masks[1][600:]) < 30
