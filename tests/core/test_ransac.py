@@ -71,3 +71,52 @@ def test_trials_needed() -> None:
     assert trials_needed(0.5, 2, 0.99) == pytest.approx(np.log(0.01) / np.log(0.75))
     assert trials_needed(0.0, 2, 0.99) == np.inf
     assert trials_needed(1.0, 3, 0.99) == 1.0
+
+
+def test_batched_sample_check_scores_fewer_hypotheses_and_finds_the_same_plane() -> None:
+    """The T(d,d) check of batch mode: hypotheses whose own triple is mostly off them (here: the
+    normals disagree) are not scored, and the plane found is the one found without the check."""
+    rng = np.random.default_rng(3)
+    plane = np.column_stack([rng.uniform(-1, 1, (300, 2)), rng.normal(0.0, 0.002, 300)])
+    wall = np.column_stack([rng.uniform(-1, 1, 300), np.full(300, 1.5), rng.uniform(0, 1, 300)])
+    clutter = rng.uniform(-1, 1.5, (600, 3))
+    pts = np.vstack([plane, wall, clutter])
+    nrm = np.vstack([np.tile([0.0, 0.0, 1.0], (300, 1)), np.tile([0.0, 1.0, 0.0], (300, 1))])
+    nrm = np.vstack([nrm, rng.normal(size=(600, 3))])
+    data = np.hstack([pts, nrm / np.linalg.norm(nrm, axis=1, keepdims=True)])
+
+    scored: list[int] = []
+
+    class Counted(PlaneModel):
+        normal_weight = 0.01 / np.deg2rad(30.0)
+
+        @classmethod
+        def batch_inlier_residuals(cls, params: np.ndarray, rows: np.ndarray, threshold: float) -> np.ndarray:
+            if rows.shape[0] == 1200:  # the scoring, not the check of the samples
+                scored.append(params.shape[0])
+            return super().batch_inlier_residuals(params, rows, threshold)
+
+    class Generic(Counted):  # the sample check from the generic (B, B * 3) scoring
+        batch_sample_residuals = None  # type: ignore[assignment]
+
+    masks = []
+    for check, model in ((False, Counted), (True, Counted), (True, Generic)):
+        scored.clear()
+        _, mask = ransac(
+            data,
+            model,
+            3,
+            0.01,
+            max_trials=400,
+            min_trials=400,
+            rng=np.random.default_rng(1),
+            batch=50,
+            verify_sample=check,
+        )
+        masks.append(mask)
+        if check:
+            assert sum(scored) < 0.2 * 400  # most random triples fail the check
+        else:
+            assert sum(scored) > 0.9 * 400
+    assert np.array_equal(masks[0], masks[1]) and np.array_equal(masks[1], masks[2])
+    assert np.count_nonzero(masks[1][:600]) >= 290 and np.count_nonzero(masks[1][600:]) < 30
