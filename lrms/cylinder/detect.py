@@ -9,7 +9,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from lrms.cylinder.grid import nearest_in_grid
-from lrms.cylinder.model import Cylinder, estimate_normals, perpendicular_frame
+from lrms.cylinder.model import Cylinder, estimate_normals, knn_query, perpendicular_frame
 from lrms.cylinder.options import DetectOptions
 from lrms.cylinder.refine import CylinderFit, refine_cylinder
 from lrms.errors import FitError
@@ -229,19 +229,47 @@ class Background:
 #: and are passed over; a later failure, or one after a plane was taken, ends the search.
 PIECE_SKIPS = 2
 
-#: Cell (m) of the occupancy grid in which a background plane's points must form one piece.
+#: Smallest cell (m) of the occupancy grid in which a background plane's points must form one
+#: piece (:func:`_plane_extent`; the cell grows with the plane's sampled point spacing).
 WALL_CELL = 0.1
+#: Cell of that grid in units of the plane's sampled point spacing (the median distance of its
+#: points to their :data:`SPACING_NEIGHBOUR`-th nearest one in the plane, about ``1/sqrt(density)``
+#: for a random sample): about 6 points a cell, so a random sample of an extended surface is one
+#: piece at any sampling density, while holes of a few spacings (between objects) still separate.
+CELL_PER_SPACING = 2.5
+#: The neighbour whose distance is the point spacing (the 1st is along a scan line where the
+#: sample is dense: too short for the distance between lines).
+SPACING_NEIGHBOUR = 3
+
+
+def plane_cell(uv: FloatArray) -> float:
+    """Cell (m) of the piece test for a plane's points ``uv`` (``(n, 2)``, in the plane):
+    :data:`CELL_PER_SPACING` times their median :data:`SPACING_NEIGHBOUR`-th neighbour distance,
+    at least :data:`WALL_CELL`."""
+    n = uv.shape[0]
+    if n < 2:
+        return WALL_CELL
+    k = min(SPACING_NEIGHBOUR, n - 1)
+    nb = knn_query(uv)(uv, k + 1)[:, k]
+    spacing = float(np.median(np.linalg.norm(uv[nb] - uv, axis=1)))
+    return max(WALL_CELL, CELL_PER_SPACING * spacing)
 
 
 def _plane_extent(on: FloatArray, normal: FloatArray) -> float:
     """The smaller span (2nd-98th percentiles) of the largest connected piece of a plane's points
-    (8-connected cells of :data:`WALL_CELL` in the plane). A wall, floor or table top is one
+    (8-connected cells of :func:`plane_cell` in the plane). A wall, floor or table top is one
     extended piece; the front strip of a cylinder together with a few unrelated objects that
     happen to lie in the same plane is not (on the whole room cloud one such "plane" took a
-    third of the part's points in 2 of 6 runs before this test)."""
+    third of the part's points in 2 of 6 runs before this test).
+
+    The cell scales with the plane's own sampled spacing, so whether a wall is one piece does not
+    depend on how densely the working sample covers it: with fixed 0.1 m cells the back wall of a
+    room sweep at 6 m (sampled about every 0.15 m, 4 % of the cloud) came out as 0.48-1.7 m
+    pieces depending on the draw, and was missed when below ``wall_min_extent``. A dense strip
+    (the part's front, 20-40 mm spacing) keeps 0.1 m cells."""
     e1, e2 = perpendicular_frame(normal)
     uv = on @ np.stack([e1, e2], axis=1)
-    cells = np.floor((uv - uv.min(axis=0)) / WALL_CELL).astype(np.int64)
+    cells = np.floor((uv - uv.min(axis=0)) / plane_cell(uv)).astype(np.int64)
     lab = _cell_components(cells)
     piece = uv[lab == int(np.argmax(np.bincount(lab)))]
     span = np.ptp(np.percentile(piece, [2.0, 98.0], axis=0), axis=0)
