@@ -9,7 +9,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from lrms.cylinder.grid import nearest_in_grid
-from lrms.cylinder.model import Cylinder, estimate_normals, perpendicular_frame
+from lrms.cylinder.model import Cylinder, estimate_normals, knn_query, perpendicular_frame
 from lrms.cylinder.options import DetectOptions
 from lrms.cylinder.refine import CylinderFit, refine_cylinder
 from lrms.errors import FitError
@@ -229,23 +229,86 @@ class Background:
 #: and are passed over; a later failure, or one after a plane was taken, ends the search.
 PIECE_SKIPS = 2
 
-#: Cell (m) of the occupancy grid in which a background plane's points must form one piece.
+#: Smallest cell (m) of the occupancy grid in which a background plane's points must form one
+#: piece (:func:`_plane_extent`; the cell grows with the plane's sampled point spacing).
 WALL_CELL = 0.1
+#: Cell of that grid in units of the plane's sampled point spacing (the median distance of its
+#: points to their :data:`SPACING_NEIGHBOUR`-th nearest one in the plane, about ``1/sqrt(density)``
+#: for a random sample): about 6 points a cell, so a random sample of an extended surface is one
+#: piece at any sampling density, while holes of a few spacings (between objects) still separate.
+CELL_PER_SPACING = 2.5
+#: The neighbour whose distance is the point spacing (the 1st is along a scan line where the
+#: sample is dense: too short for the distance between lines).
+SPACING_NEIGHBOUR = 3
+
+
+def plane_cell(uv: FloatArray) -> float:
+    """Cell (m) of the piece test for a plane's points ``uv`` (``(n, 2)``, in the plane):
+    :data:`CELL_PER_SPACING` times their median :data:`SPACING_NEIGHBOUR`-th neighbour distance,
+    at least :data:`WALL_CELL`."""
+    n = uv.shape[0]
+    if n < 2:
+        return WALL_CELL
+    k = min(SPACING_NEIGHBOUR, n - 1)
+    nb = knn_query(uv)(uv, k + 1)[:, k]
+    spacing = float(np.median(np.linalg.norm(uv[nb] - uv, axis=1)))
+    return max(WALL_CELL, CELL_PER_SPACING * spacing)
+
+
+@dataclass(frozen=True)
+class _Piece:
+    """The largest connected piece of a plane's points in its cell grid (:func:`_plane_piece`):
+    the in-plane frame ``frame`` (2 x 3), the grid's origin and cell, the piece's cells as sorted
+    keys, and ``extent``, the smaller span (2nd-98th percentiles) of its points."""
+
+    frame: FloatArray
+    origin: FloatArray
+    cell: float
+    width: int
+    keys: NDArray[np.int64]
+    extent: float
+
+    def _key(self, points: FloatArray) -> NDArray[np.int64]:
+        c = np.floor((points @ self.frame.T - self.origin) / self.cell).astype(np.int64)
+        return np.asarray(c[:, 0] * self.width + c[:, 1], dtype=np.int64)
+
+    def covers(self, points: FloatArray) -> NDArray[np.bool_]:
+        """Whether each point (``(m, 3)``) falls in a cell of the piece."""
+        key = self._key(points)
+        pos = np.minimum(np.searchsorted(self.keys, key), self.keys.size - 1)
+        return np.asarray(self.keys[pos] == key, dtype=bool)
+
+
+def _plane_piece(on: FloatArray, normal: FloatArray) -> _Piece:
+    """The largest connected piece of a plane's points ``on`` (8-connected cells of
+    :func:`plane_cell` in the plane). A wall, floor or table top is one extended piece; the front
+    strip of a cylinder together with a few unrelated objects that happen to lie in the same plane
+    is not (on the whole room cloud one such "plane" took a third of the part's points in 2 of 6
+    runs before this test).
+
+    The cell scales with the plane's own sampled spacing, so whether a wall is one piece does not
+    depend on how densely the working sample covers it: with fixed 0.1 m cells the back wall of a
+    room sweep at 6 m (sampled about every 0.15 m, 4 % of the cloud) came out as 0.48-1.7 m
+    pieces depending on the draw, and was missed when below ``wall_min_extent``. A dense strip
+    (the part's front, 20-40 mm spacing) keeps 0.1 m cells."""
+    e1, e2 = perpendicular_frame(normal)
+    frame = np.stack([e1, e2])
+    uv = on @ frame.T
+    origin = uv.min(axis=0)
+    cell = plane_cell(uv)
+    cells = np.floor((uv - origin) / cell).astype(np.int64)
+    lab = _cell_components(cells)
+    big = lab == int(np.argmax(np.bincount(lab)))
+    span = np.ptp(np.percentile(uv[big], [2.0, 98.0], axis=0), axis=0)
+    width = int(cells[:, 1].max()) + 3
+    keys = np.unique(cells[big, 0] * width + cells[big, 1])
+    return _Piece(frame, origin, cell, width, keys, float(np.min(span)))
 
 
 def _plane_extent(on: FloatArray, normal: FloatArray) -> float:
     """The smaller span (2nd-98th percentiles) of the largest connected piece of a plane's points
-    (8-connected cells of :data:`WALL_CELL` in the plane). A wall, floor or table top is one
-    extended piece; the front strip of a cylinder together with a few unrelated objects that
-    happen to lie in the same plane is not (on the whole room cloud one such "plane" took a
-    third of the part's points in 2 of 6 runs before this test)."""
-    e1, e2 = perpendicular_frame(normal)
-    uv = on @ np.stack([e1, e2], axis=1)
-    cells = np.floor((uv - uv.min(axis=0)) / WALL_CELL).astype(np.int64)
-    lab = _cell_components(cells)
-    piece = uv[lab == int(np.argmax(np.bincount(lab)))]
-    span = np.ptp(np.percentile(piece, [2.0, 98.0], axis=0), axis=0)
-    return float(np.min(span))
+    (:func:`_plane_piece`)."""
+    return _plane_piece(on, normal).extent
 
 
 def _cell_components(cells: NDArray[np.int64]) -> IntArray:
@@ -282,6 +345,10 @@ def _cell_components(cells: NDArray[np.int64]) -> IntArray:
     _, comp = np.unique(lab, return_inverse=True)
     return np.asarray(comp[of_point.ravel()], dtype=np.intp)
 
+
+#: Take into a background plane the sampled points within ``threshold`` of it that lie in its
+#: piece's cells (:func:`_plane_piece`) though their normals disagree with it.
+ABSORB_IN_PIECE = True
 
 #: Rows of the working sample on which each background plane RANSAC scores its hypotheses.
 PLANE_SCORE_SIZE = 1000
@@ -330,7 +397,8 @@ def background_planes(
             break
         if np.count_nonzero(mask) < opt.wall_min_share * idx.size:
             break
-        if _plane_extent(pts[idx[rows[mask]]], model.normal) < opt.wall_min_extent:
+        piece = _plane_piece(pts[idx[rows[mask]]], model.normal)
+        if piece.extent < opt.wall_min_extent:
             if planes or skipped >= PIECE_SKIPS:
                 break
             # not one extended piece (the part's front strip with a few points in line with it,
@@ -340,8 +408,16 @@ def background_planes(
             pool[rows[mask]] = False
             continue
         planes.append((np.asarray(model.normal, dtype=np.float64), float(model.offset)))
-        left[rows[mask]] = False
-        pool[rows[mask]] = False
+        taken = rows[mask]
+        if ABSORB_IN_PIECE:
+            # sampled points on the plane inside its piece whose own normals missed the plane's
+            # (neighbourhoods of a sparse sample straddle corners): the plane's too, else each
+            # lends its "left" to the cloud's points nearest it (:meth:`Background.off`)
+            rest = rows[~mask]
+            on_plane = rest[np.abs(pts[idx[rest]] @ model.normal - model.offset) < opt.threshold]
+            taken = np.concatenate([taken, on_plane[piece.covers(pts[idx[on_plane]])]])
+        left[taken] = False
+        pool[taken] = False
     return Background(planes, idx, pts[idx], left, data[:, 3:6])
 
 
