@@ -299,28 +299,44 @@ def main(argv: list[str] | None = None) -> int:
     FD is its end of the socket pair, and the first message on it is a :class:`Boot`). SIM_ARGS
     (JSON, :func:`service.simproc.sim_args`; a ``[sim]`` config with ``process = true``): the
     simulated rig to start first, before the boot message is read (its unpickling loads the
-    config models) and the rig code is imported, so the simulated rig boots meanwhile."""
+    config models) and the rig code is imported, so the simulated rig boots meanwhile.
+
+    Whatever stops the start (the boot message not readable, e.g. an ``ImportError`` when the
+    service and this process run different code; the simulated rig not starting; the rig not
+    opening) closes the simulated rig and is reported as :class:`StartupFailed` with its reason;
+    the exit status is then 1."""
     args = sys.argv[1:] if argv is None else argv
     conn = Connection(int(args[0]))
-    sim = None
-    if len(args) > 1:
-        import json
-
-        from service.simproc import SimProcess
-
-        sim = SimProcess(wait=False, args=json.loads(args[1]))
+    outbox = _Outbox(conn)
+    sim: SimProcess | None = None
     try:
+        if len(args) > 1:
+            import json
+
+            from service.simproc import SimProcess
+
+            sim = SimProcess(wait=False, args=json.loads(args[1]))
         boot = conn.recv()
-    except (EOFError, OSError):
-        if sim is not None:
-            sim.close()
-        return 1
-    if not isinstance(boot, Boot):
-        if sim is not None:
-            sim.close()
-        return 2
-    child_main(conn, boot.config, boot.log_level, boot.status_period_s, boot.after_crash, sim)
-    return 0
+        if not isinstance(boot, Boot):
+            raise RigProcessError(f"the first message was a {type(boot).__name__}, not a Boot")
+    except BaseException as exc:
+        return _startup_failed(outbox, sim, exc)
+    return child_main(conn, boot.config, boot.log_level, boot.status_period_s, boot.after_crash, sim, outbox=outbox)
+
+
+def _startup_failed(outbox: _Outbox, sim: SimProcess | None, exc: BaseException) -> int:
+    """Close the simulated rig, tell the service why the start failed (if it is still there to
+    read it: the outbox drops what it cannot send) and give the exit status."""
+    if sim is not None:
+        sim.close()
+    if isinstance(exc, EOFError):
+        reason = "the service closed the rig process's pipe before its boot message"
+    else:
+        log.error("the rig did not open", exc_info=exc)
+        reason = f"{type(exc).__name__}: {exc}"
+    outbox.send(StartupFailed(reason))
+    outbox.close()
+    return 1
 
 
 def child_main(
@@ -330,48 +346,41 @@ def child_main(
     status_period_s: float,
     after_crash: bool,
     sim: SimProcess | None = None,
-) -> None:
+    *,
+    outbox: _Outbox | None = None,
+) -> int:
     """The rig process's work: open the rig, report, run commands until told to stop or the pipe
-    closes. ``sim``: the simulated rig's process, already started (by :func:`main`)."""
+    closes; the exit status (1: the start failed, reported as :class:`StartupFailed`). ``sim``:
+    the simulated rig's process, already started (by :func:`main`), closed with the rig, also
+    when the start fails. ``outbox``: the pipe's sender, if already made."""
     import os
 
-    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(var, "1")
-    logging.basicConfig(
-        level=log_level.upper(), format="%(asctime)s %(levelname)s rig[%(process)d] %(name)s: %(message)s"
-    )
-    # Ctrl-C in a terminal reaches the whole process group: the service stops this process itself
-    # (ShutdownCmd, or its end of the pipe closing); SIGTERM (a service manager stopping the whole
-    # group) is a clean stop too: sweep cancelled, motor stopped, devices closed
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-    def terminated(signum: int, frame: object) -> None:
-        raise SystemExit(128 + signum)
-
-    signal.signal(signal.SIGTERM, terminated)
-    outbox = _Outbox(conn)
+    if outbox is None:
+        outbox = _Outbox(conn)
     try:
+        for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+            os.environ.setdefault(var, "1")
+        logging.basicConfig(
+            level=log_level.upper(), format="%(asctime)s %(levelname)s rig[%(process)d] %(name)s: %(message)s"
+        )
+        # Ctrl-C in a terminal reaches the whole process group: the service stops this process
+        # itself (ShutdownCmd, or its end of the pipe closing); SIGTERM (a service manager stopping
+        # the whole group) is a clean stop too: sweep cancelled, motor stopped, devices closed
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+        def terminated(signum: int, frame: object) -> None:
+            raise SystemExit(128 + signum)
+
+        signal.signal(signal.SIGTERM, terminated)
         if sim is None and config.sim is not None and config.sim.process:
             from service.simproc import SimProcess
 
             sim = SimProcess(config, wait=False)  # the simulated rig boots while the rig code loads
         from service.rig import Rig
 
-        rig = Rig(config, fit_process=True)
+        rig = Rig(config, fit_process=True).open(sim)  # closes what it opened when it fails
     except BaseException as exc:
-        if sim is not None:
-            sim.close()
-        log.exception("the rig did not open")
-        outbox.send(StartupFailed(f"{type(exc).__name__}: {exc}"))
-        outbox.close()
-        return
-    try:
-        rig = rig.open(sim)
-    except BaseException as exc:
-        log.exception("the rig did not open")
-        outbox.send(StartupFailed(f"{type(exc).__name__}: {exc}"))
-        outbox.close()
-        return
+        return _startup_failed(outbox, sim, exc)
     worker = _Worker(rig, outbox)
     stop = threading.Event()
 
@@ -410,6 +419,7 @@ def child_main(
         worker.join(30.0)
         rig.close()
         outbox.close()
+    return 0
 
 
 # -- the API side ---------------------------------------------------------------------------
@@ -501,13 +511,15 @@ class RigSupervisor:
             first = parent.recv() if parent.poll(self.start_timeout_s) else None
         except (EOFError, OSError):
             pass
+        except Exception as exc:  # the boot message did not pickle, or the answer did not unpickle
+            first = StartupFailed(f"{type(exc).__name__}: {exc}")
         if not isinstance(first, Ready):
+            parent.close()  # a rig process still waiting for its boot message sees the pipe close
             try:
                 proc.wait(10.0)
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait(5.0)
-            parent.close()
             why = first.reason if isinstance(first, StartupFailed) else _exit_text(proc.returncode)
             raise RigProcessError(f"the rig process did not start: {why}")
         self.scanner_url = first.info.get("scanner_url")
@@ -740,30 +752,3 @@ if __name__ == "__main__":
     from service.rigproc import main as _main
 
     raise SystemExit(_main())
-
-
-def _import_api() -> None:
-    with contextlib.suppress(Exception):  # a failed import is raised again where it is used
-        import service.api.core  # noqa: F401  (the Service; the app and its routes only for lrms serve)
-
-
-def isolated_service(config: RigConfig, open_rig: bool = True, *, log_level: str = "warning") -> tuple[Any, Any]:
-    """The REST service for ``config`` with its rig in a process of its own (a
-    :class:`RigSupervisor`, opened unless told otherwise): ``(Service, RigSupervisor)``.
-
-    This module imports neither the rig code nor the API at load time, so the rig process is
-    started first; the API's imports (FastAPI, SQLAlchemy, the store: about a second) then run
-    while it boots.
-    """
-    sup = RigSupervisor(config, log_level=log_level)
-    if open_rig:
-        loader = threading.Thread(target=_import_api, name="lrms-import-api", daemon=True)
-        loader.start()
-        try:
-            sup.open()
-        finally:
-            loader.join()
-    from service.api import Service
-
-    svc = Service(config, sup.measure, rig_info=sup.describe, rig_health=sup.health, rig_reset=sup.reset)
-    return svc, sup
