@@ -13,7 +13,7 @@ import contextlib
 import threading
 from typing import TYPE_CHECKING
 
-from service.rigproc import RigSupervisor
+from service.supervisor import RigSupervisor
 
 if TYPE_CHECKING:
     from service.api.core import Service

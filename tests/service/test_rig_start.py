@@ -24,8 +24,9 @@ from pathlib import Path
 import pytest
 
 from service.config import RigConfig, load_config
-from service.rigproc import RigProcessError, RigSupervisor, StartupFailed
+from service.rigproc import RigProcessError, StartupFailed
 from service.simproc import sim_args
+from service.supervisor import RigSupervisor
 from tests.conftest import REPO
 
 
