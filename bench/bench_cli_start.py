@@ -59,7 +59,10 @@ MEASURE_ARGS = ["measure", "--target", "cylinder", "--quiet", "--speed", "45"]
 #: What ``lrms measure`` imports before it starts the rig process; the other "measure:" rows are
 #: the imports of the service (on a thread of the command), of the rig process, and the simulated
 #: rig's imports and set-up (scene, servers bound, closed again): its parts, each a process.
-MEASURE_FIRST = "import service.cli.main, service.cli.measure, service.config, service.models, service.rigproc"
+MEASURE_FIRST = (
+    "import contextlib, service.cli.main, service.cli.measure, service.config, service.models, service.rigproc\n"
+    "with contextlib.suppress(ImportError): import service.isolated  # isolated_service (older trees: in rigproc)"
+)
 SIM_BUILD = "import sim.rig, sim.drive.socketcand; sim.rig.SimulatedRig().close()"
 #: Seconds from starting the command to the first motion in its raw log, per case name (filled by
 #: the measure cases: :func:`_sweep_start`).

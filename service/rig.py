@@ -545,12 +545,12 @@ def build_service(
     """The REST service for ``config`` with its rig (opened unless told otherwise).
 
     ``isolate`` (the default, and what ``lrms serve`` and ``lrms measure`` use): the rig runs in
-    its own process (:func:`service.rigproc.isolated_service`), and the service gets its
+    its own process (:func:`service.isolated.isolated_service`), and the service gets its
     measurement function, device state, health and drive reset from there. ``isolate=False``
     keeps a :class:`Rig` in this process (library use; no isolation from request handling).
     """
     if isolate:
-        from service.rigproc import isolated_service
+        from service.isolated import isolated_service
 
         return isolated_service(config, open_rig, log_level=log_level)
     from service.api import Service

@@ -2,7 +2,7 @@
 it for a ``[sim]`` config with ``process = true``.
 
 A module of its own (the standard library only) so that the rig process starts the simulated
-rig before it imports anything else: :class:`service.rigproc.RigSupervisor` passes
+rig before it imports anything else: :class:`service.supervisor.RigSupervisor` passes
 :func:`sim_args` on the rig process's command line, and the rig process
 (:func:`service.rigproc.main`) starts the simulated rig from them before it reads its boot
 message (which loads the config models) and the rig code, so they all boot at the same time.

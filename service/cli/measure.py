@@ -95,13 +95,13 @@ def run(args: argparse.Namespace) -> int:
     import time
 
     # only the config and request models before the rig process starts: the rig code, the API
-    # and the store load while it boots (service.rigproc.isolated_service). The sweep, mapping
+    # and the store load while it boots (service.isolated.isolated_service). The sweep, mapping
     # and fit run in the rig process (its fit worker imports the fit code), so this process
     # does not import them to settle its heap (Service.start's default for lrms serve)
     from service.config import load_config
     from service.errors import ServiceError
+    from service.isolated import isolated_service
     from service.models import MeasurementRequest, resolve_sweep
-    from service.rigproc import isolated_service
 
     try:
         request = MeasurementRequest.model_validate(request_body(args))

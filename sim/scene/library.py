@@ -300,11 +300,19 @@ ROOM_AXIS_POSES: tuple[tuple[tuple[float, float, float], float, float], ...] = (
 def room_axis_artefact(u_distance_m: float = 3e-5) -> dict[str, object]:
     """``room-spheres-axis``'s artefact: the five 0.5 m spheres and all 10 centre distances (each
     with standard uncertainty ``u_distance_m``, as a laser tracker or CMM measures the network)."""
-    c = [np.asarray(x, dtype=np.float64) for x, _ in ROOM_AXIS_SPHERES]
+    return _axis_artefact(ROOM_AXIS_SPHERES, u_distance_m)
+
+
+def _axis_artefact(
+    spheres: tuple[tuple[tuple[float, float, float], float], ...], u_distance_m: float
+) -> dict[str, object]:
+    """An artefact of ``spheres`` ((centre m, diameter m) each) with all their centre distances,
+    each with standard uncertainty ``u_distance_m``; the walls (planes) are used too."""
+    c = [np.asarray(x, dtype=np.float64) for x, _ in spheres]
     n = len(c)
     return {
         "planes": True,
-        "spheres": [{"diameter_m": d} for _, d in ROOM_AXIS_SPHERES],
+        "spheres": [{"diameter_m": d} for _, d in spheres],
         "distances_m": [
             {"a": i, "b": j, "distance_m": float(np.linalg.norm(c[j] - c[i])), "u_distance_m": u_distance_m}
             for i in range(n)
@@ -354,17 +362,7 @@ HALL_AXIS_POSES: tuple[tuple[tuple[float, float, float], float, float], ...] = (
 def hall_axis_artefact(u_distance_m: float = 3e-5) -> dict[str, object]:
     """``hall-spheres-axis``'s artefact: the four 0.5 m spheres and all 6 centre distances (each
     with standard uncertainty ``u_distance_m``: a laser tracker network; docs/calibration.md)."""
-    c = [np.asarray(x, dtype=np.float64) for x, _ in HALL_AXIS_SPHERES]
-    n = len(c)
-    return {
-        "planes": True,
-        "spheres": [{"diameter_m": d} for _, d in HALL_AXIS_SPHERES],
-        "distances_m": [
-            {"a": i, "b": j, "distance_m": float(np.linalg.norm(c[j] - c[i])), "u_distance_m": u_distance_m}
-            for i in range(n)
-            for j in range(i + 1, n)
-        ],
-    }
+    return _axis_artefact(HALL_AXIS_SPHERES, u_distance_m)
 
 
 def hall_spheres_axis() -> Scene:

@@ -22,7 +22,7 @@ LRMS = [sys.executable, "-m", "service.cli.main"]
 
 
 def test_measure_starts_the_rig_process_before_the_rig_code_api_and_store_load() -> None:
-    """``lrms measure`` starts the rig process (:func:`service.rigproc.isolated_service`) with only
+    """``lrms measure`` starts the rig process (:func:`service.isolated.isolated_service`) with only
     the config and request models loaded: the rig code, the web stack and the store load in this
     process while the rig process boots (bench/bench_cli_start.py: the sweep's start). The rig
     process's code loads no store (SQLAlchemy, Alembic), no web stack, no simulator device code
@@ -34,7 +34,7 @@ def test_measure_starts_the_rig_process_before_the_rig_code_api_and_store_load()
     newest schema), croniter (a cron schedule), jinja2 (a report)."""
     code = (
         "import sys\n"
-        "import service.cli.measure, service.config, service.models, service.rigproc\n"
+        "import service.cli.measure, service.config, service.models, service.isolated\n"
         "late = ('service.rig', 'service.api', 'service.store', 'service.jobs', 'fastapi', 'sqlalchemy', 'alembic',\n"
         "        'scipy', 'service.calstore', 'lrms.calibration', 'scipy.optimize', 'sim.scanner', 'sim.scene',\n"
         "        'service.api.core', 'service.api.app', 'uvicorn', 'croniter', 'jinja2', 'service.report')\n"
