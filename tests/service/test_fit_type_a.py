@@ -23,8 +23,12 @@ seed 13 gives ``std_m`` 0.522 mm for an error of -0.60 mm. The check below fails
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
+import pytest
+
+from lrms.cylinder import pipeline
 
 from service import fitting
 from service.config import load_config
@@ -85,6 +89,22 @@ def test_a_typical_offline_sweep_is_within_its_std_m() -> None:
     assert abs(r["error_m"]) <= 2 * r["std_m"], r
 
 
-def test_std_m_does_not_collapse_below_half_the_diameters_scatter() -> None:
+def test_std_m_does_not_collapse_below_the_diameters_scatter(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Seed 13, the sweep whose ``std_m`` once collapsed to 0.107 mm: ``std_m`` within 20 % of the
+    sweeps' scatter and the error within 3 ``std_m`` (a 2x under-report fails). The sweep is clean
+    (no clutter beam), so the dominant-beam step (``_without_dominant_beams``) must return its fit
+    unchanged: it once dropped the part's own limb beam (leverage 0.969, 1.0 mm from the true
+    surface) for a cost drop of 1.5, moving the error from -0.60 to -0.76 mm."""
+    seen: list[tuple[object, object]] = []
+    step = pipeline._without_dominant_beams
+
+    def recorded(*args: Any) -> Any:
+        out = step(*args)
+        seen.append((args[2], out))
+        return out
+
+    monkeypatch.setattr(pipeline, "_without_dominant_beams", recorded)
     r = fit(13)
-    assert r["std_m"] >= SCATTER_M / 2, r
+    assert seen and all(out is fit_in for fit_in, out in seen)
+    assert r["std_m"] >= 0.8 * SCATTER_M, r
+    assert abs(r["error_m"]) <= 3 * r["std_m"], r
