@@ -259,6 +259,14 @@ def _plausible(fit: CylinderFit, pts: FloatArray, start: Cylinder, opt: DetectOp
     return chi_ok and fit.n_inliers >= 0.7 * near
 
 
+#: chi2/dof above which a line-of-sight fit is a gross failure that earns the second look
+#: (:func:`_second_look`): the room-sized cylinders of a missed wall refine to 2.3-5.4; a rig whose
+#: sigma_l is 15 % optimistic gives 1.3-1.4 on a good fit, which the second look cannot improve
+#: (it paid +0.21 s on every such fit when the trigger was :data:`CHI2_PLAUSIBLE`).
+CHI2_GROSS = 2.0
+#: The second look's fit replaces a first one only at a chi2/dof below this share of the first's.
+SECOND_LOOK_GAIN = 0.75
+
 #: Background sample (points) of the second look (:func:`_second_look`): about 3x the default
 #: ``DetectOptions.wall_sample``, dense enough that a far wall's sampled points form one piece.
 DENSE_WALL_SAMPLE = 9_000
@@ -267,21 +275,25 @@ DENSE_WALL_SAMPLE = 9_000
 def _second_look(
     first: CylinderFit | None, refit: Callable[[DetectOptions], CylinderFit], opt: DetectOptions
 ) -> CylinderFit | None:
-    """The detection again, on a :data:`DENSE_WALL_SAMPLE` background sample, when the first left
-    no fit the noise model explains (``first``: its result, ``None`` if it found none).
+    """The detection again, on a :data:`DENSE_WALL_SAMPLE` background sample, when the first failed
+    grossly (``first``: its result, of chi2/dof above :data:`CHI2_GROSS`; ``None`` if it found none
+    or its fit failed a check).
 
     A wall missed by the background planes (its sparse sample of 3000 points at 6 m not one
     10 cm-connected piece, :func:`~lrms.cylinder.detect._plane_extent`) fills the RANSAC's pool,
     whose best-supported candidates are then room-sized cylinders tangent to it; every attempt
     refines one of those to chi2/dof 2.5-6 and the best of them came back (D = 2-3.6 m on a
-    0.1375 m part). Returns the better of the two by :func:`_better` (the one the noise model
-    explains, else the lower chi2/dof; ``first`` if the second look fails), ``None`` if neither
-    found one."""
+    0.1375 m part). Returns the second fit when ``first`` is ``None`` or the second clearly
+    improves on it (chi2/dof below :data:`SECOND_LOOK_GAIN` times the first's), else ``first``
+    (also when the second look fails); ``None`` if neither found one."""
     try:
         second = refit(replace(opt, wall_sample=DENSE_WALL_SAMPLE))
     except FitError:
         return first
-    return second if first is None or _better(second, first) else first
+    if first is None:
+        return second
+    gain = second.line_of_sight and second.chi2_dof < SECOND_LOOK_GAIN * first.chi2_dof
+    return second if gain else first
 
 
 #: Leverage (diagonal of the whitened hat matrix, range and miss row together) above which an
@@ -524,6 +536,6 @@ def fit_cylinder(
             f" [{1e3 * diameter_range[0]:.1f}, {1e3 * diameter_range[1]:.1f}] mm"
         )
     result = replace(best, plane=plane, base_point=base, n_points=int(pts.shape[0]))
-    if look_again and not _noise_explains(result):
+    if look_again and result.line_of_sight and result.chi2_dof > CHI2_GROSS:
         return _second_look(result, again, opt) or result
     return result
