@@ -352,6 +352,27 @@ def _without_dominant_beams(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: 
     return best
 
 
+def _solved_on_inliers(pts: FloatArray, rays: Rays, fit: CylinderFit) -> CylinderFit:
+    """``fit`` solved on all its inliers (one round of :func:`refine_cylinder` from its model; its
+    inlier selection and covariance with it), ``fit`` itself if that solve fails. For the
+    multi-start's winner left unsolved (``polish=False`` of :func:`_multistart`) when no refit follows."""
+    idx = fit.inliers
+    try:
+        new = refine_cylinder(pts[idx], fit.cylinder, rays=rays.subset(idx), max_rounds=1)
+    except FitError:
+        return fit
+    return replace(
+        fit,
+        cylinder=new.cylinder,
+        inliers=idx[new.inliers],
+        rmse=new.rmse,
+        covariance=new.covariance,
+        frame=new.frame,
+        chi2_dof=new.chi2_dof,
+        sigma_scale=new.sigma_scale,
+    )
+
+
 def _cost(fit: CylinderFit) -> float:
     """The line-of-sight fit's cost (sum of its squared whitened residuals), from its chi2/dof."""
     return fit.chi2_dof * max(fit.n_inliers - 5, 1)
@@ -521,7 +542,12 @@ def fit_cylinder(
         best = fp if footprint_won else replace(best, extra=fp.extra)  # the thin beam explains the data best
     if rr is not None and not footprint_won:
         try:
-            best = grazing_weighted_fit(pts, rr, best, lat, radius_range=opt.radius_range)
+            weighted = grazing_weighted_fit(pts, rr, best, lat, radius_range=opt.radius_range)
+            if weighted is best and not polish:
+                # the grazing fit kept its input (its LM failed or its radius left the range):
+                # the multi-start's winner, solved on a subset of its inliers only, is solved on all
+                weighted = _solved_on_inliers(pts, rr, best)
+            best = weighted
             if opt.bias_correction:
                 best = bias_corrected(best, rr.subset(best.inliers))
         except FitError:  # e.g. a room-sized fit on few inliers, its covariance's nodes past r = 0
