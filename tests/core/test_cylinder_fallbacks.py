@@ -8,7 +8,10 @@ import pytest
 
 from bench import seed003_reproduction as seed
 from lrms.covariance import NoiseModel
-from lrms.cylinder import DetectOptions, Rays, fit_cylinder, pipeline, refine_cylinder
+from lrms.cylinder import Cylinder, DetectOptions, Rays, fit_cylinder, pipeline, refine_cylinder
+from lrms.cylinder.bias import GRAZING_SIGMA, smoothed_covariance, weighted_sandwich
+from lrms.cylinder.lm import LosProblem
+from lrms.cylinder.model import perpendicular_frame
 from lrms.cylinder.refine import CylinderFit
 
 NM = NoiseModel()
@@ -33,3 +36,20 @@ def test_a_kept_multistart_winner_is_solved_on_all_its_inliers(monkeypatch: pyte
     again = refine_cylinder(pts[inl], fit.cylinder, rays=rays.subset(inl), max_rounds=1, gate=np.inf)
     assert abs(again.diameter - fit.diameter) < 2e-6  # already the solution on all of them
     assert abs(fit.diameter - 2 * seed.RADIUS) < 4 * fit.std_diameter
+
+
+def test_the_smoothed_covariance_of_a_very_uncertain_fit_stays_at_positive_radii() -> None:
+    """30 beams on a 4 mm radius at 11.7 mm range noise: the radius's u (9 mm at the solution) puts
+    the unscented nodes past r = 0. The nodes are moved in (the smoothing over a narrower
+    interval) instead of raising a FitError that ended a valid, if uncertain, fit."""
+    cyl = Cylinder(np.array([0.0, 2.5, 0.0]), np.array([0.0, 0.0, 1.0]), 0.004)
+    x, z = np.meshgrid(np.linspace(-0.003, 0.003, 5), np.linspace(-0.05, 0.05, 6))
+    hits = np.stack([x.ravel(), 2.5 - np.sqrt(cyl.radius**2 - x.ravel() ** 2), z.ravel()], axis=1)
+    ranges = np.linalg.norm(hits, axis=1)
+    rays = Rays(np.zeros_like(hits), hits / ranges[:, None], ranges, np.full(30, 0.0117), np.full(30, 8e-5))
+    frame = perpendicular_frame(cyl.direction)
+    centre = weighted_sandwich(LosProblem(rays), rays, cyl, GRAZING_SIGMA, frame)
+    assert np.sqrt(6.0 * centre[4, 4]) > cyl.radius  # the case in question
+    cov = smoothed_covariance(LosProblem(rays), rays, cyl, GRAZING_SIGMA, frame)
+    assert np.all(np.isfinite(cov)) and np.linalg.eigvalsh(cov).min() > 0
+    assert cov[4, 4] >= centre[4, 4]
