@@ -30,7 +30,9 @@ def test_a_kept_multistart_winner_is_solved_on_all_its_inliers(monkeypatch: pyte
     truth = seed.sweep_points(step_alpha_deg=0.25, step_beta_deg=0.25)
     pts, rays = seed.noisy_scan(truth, NM, np.random.default_rng(7))
     monkeypatch.setattr(pipeline, "grazing_weighted_fit", _kept)
-    fit = fit_cylinder(pts, rays=rays, noise=NM, rng=np.random.default_rng(0), options=DetectOptions(bias_correction=False))
+    fit = fit_cylinder(
+        pts, rays=rays, noise=NM, rng=np.random.default_rng(0), options=DetectOptions(bias_correction=False)
+    )
     assert fit.n_inliers > 2 * pipeline.MULTISTART_WORK  # the multi-start worked on a subset
     inl = fit.inliers
     again = refine_cylinder(pts[inl], fit.cylinder, rays=rays.subset(inl), max_rounds=1, gate=np.inf)
