@@ -36,9 +36,8 @@ import numpy as np
 import pytest
 
 from lrms.covariance import NoiseModel
-from lrms.cylinder import Cylinder, DetectOptions, Rays, fit_cylinder
+from lrms.cylinder import Cylinder, DetectOptions, Rays, fit_cylinder, pipeline
 from lrms.cylinder.lm import LosProblem, levenberg_marquardt
-from lrms.cylinder import pipeline
 from lrms.cylinder.pipeline import _without_dominant_beams
 from lrms.cylinder.refine import refine_cylinder
 

@@ -32,7 +32,6 @@ import numpy as np
 import pytest
 
 from lrms.cylinder import pipeline
-
 from service import fitting
 from service.config import load_config
 from service.models import MeasurementRequest
