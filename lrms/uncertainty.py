@@ -545,7 +545,9 @@ def monte_carlo_interval(
     projections on the cylinder get isotropic Gaussian noise of ``isotropic_sigma`` (default:
     the fit's rms residual); ``systematics`` do not apply there. The replicas are refitted
     without the grazing weights; when the fit was bias-corrected
-    (``fit.extra["bias_correction_diameter_m"]``) they are shifted by the same correction.
+    (``fit.extra["bias_correction_diameter_m"]``) they are shifted by the same correction, a thin
+    beam's only: a footprint fit's (``fit.extra["edge_mode_first"] >= 0``) corrects the footprint
+    model's bias, which the thin-beam replicas do not carry, and leaves them as they are.
     """
     if n < 10:
         raise LrmsError(f"Monte Carlo needs at least 10 replicas, got {n}")
@@ -589,9 +591,11 @@ def monte_carlo_interval(
         theta = _replica_fit(fun, jfun, rep, sig_l, iterations, multistart and fit.line_of_sight)
         out[s : s + rep] = 2.0 * theta[:, 4] + 2.0 * cyl.radius
     # a bias-corrected fit: the replicas are plain fits, so they take the fit's correction too (its
-    # spread from scan to scan, 0.006 mm on the seed's 567 points and 0.013 mm on the ray-cast sweeps of
-    # docs/cylinder.md, is small against theirs)
-    out -= fit.extra.get("bias_correction_diameter_m", 0.0)
+    # spread from scan to scan, 0.006 mm on the seed's 567 points and 0.013 mm on the ray-cast sweeps
+    # of docs/cylinder.md, is small against theirs); a footprint fit's correction is of the
+    # footprint model's bias, which the thin-beam replicas do not carry
+    if fit.extra.get("edge_mode_first", -1.0) < 0:
+        out -= fit.extra.get("bias_correction_diameter_m", 0.0)
     if systematics is not None and systematics.diameter_u_m > 0:
         out += g.normal(0.0, systematics.diameter_u_m, n)
     ok = np.isfinite(out)

@@ -36,6 +36,9 @@ GRAZING_EARLY_STEPS = 4
 #: Beams (at most) on which :func:`smoothed_covariance` takes its nodes' change: kept at 20 000,
 #: not :data:`BIAS_WORK`, since one grazing beam can carry most of the information a subset would miss.
 SMOOTH_WORK = 20_000
+#: Share of the radius a node of :func:`smoothed_covariance` may move it by at most (its step along
+#: the radius is shortened to this, the pair's second difference scaled back accordingly).
+SMOOTH_MIN_RADIUS = 0.5
 #: ``kappa`` of the unscented points over which :func:`smoothed_covariance` averages (1: the nodes
 #: at ``sqrt(6)`` standard deviations, the centre weighted 1/6).
 SMOOTH_KAPPA = 1.0
@@ -169,7 +172,10 @@ def smoothed_covariance(
     on the diameter between replicas of one scene whose scatter was 0.46 mm, the smallest values
     on the fits that were most off (docs/cylinder.md, "the covariance near the silhouette").
     More than :data:`SMOOTH_WORK` beams: the nodes' change is taken on a fixed random subset of
-    that many and scaled by the subset's share (the covariance goes like 1 / N).
+    that many and scaled by the subset's share (the covariance goes like 1 / N). A node pair that
+    would move the radius by more than :data:`SMOOTH_MIN_RADIUS` of it (to r <= 0 on a very
+    uncertain fit, which raised a FitError) is shortened to that, the same weights kept: the
+    average is over a narrower interval along that direction.
     """
     centre = weighted_sandwich(beams, rays, cyl, sigma_lat, frame)
     n = rays.ranges.shape[0]
@@ -181,14 +187,18 @@ def smoothed_covariance(
     lam, vec = np.linalg.eigh(0.5 * (centre + centre.T))
     steps = (np.sqrt((5.0 + SMOOTH_KAPPA) * np.maximum(lam, 0.0)) * vec).T
     fr = _Frame(cyl.point, cyl.direction, frame[0], frame[1], cyl.radius)
-    mean = SMOOTH_KAPPA / (5.0 + SMOOTH_KAPPA) * here
+    change = np.zeros_like(here)
     for step in steps:
-        for sign in (1.0, -1.0):
-            node = fr.cylinder(sign * step)
-            if not node.radius > 0:
-                raise FitError("the covariance's nodes reach a non-positive radius")
-            mean = mean + weighted_sandwich(prob, part, node, sigma_lat, frame) / (2.0 * (5.0 + SMOOTH_KAPPA))
-    return np.asarray(centre + scale * (mean - here), dtype=np.float64)
+        # a node pair that would reach r <= 0 (a fit whose radius is uncertain by more than
+        # r / sqrt(6)) is moved in to change the radius by half of it: the average is then over a
+        # shorter interval along that direction (scaling its second difference back by
+        # 1 / shrink^2 amplified the nonlinearity near r = 0 a hundredfold)
+        shrink = min(1.0, SMOOTH_MIN_RADIUS * cyl.radius / abs(float(step[4]))) if step[4] != 0 else 1.0
+        pair = sum(
+            weighted_sandwich(prob, part, fr.cylinder(sign * shrink * step), sigma_lat, frame) for sign in (1.0, -1.0)
+        )
+        change = change + (pair - 2.0 * here) / (2.0 * (5.0 + SMOOTH_KAPPA))
+    return np.asarray(centre + scale * change, dtype=np.float64)
 
 
 def plain_isl(rays: Rays) -> FloatArray:

@@ -89,3 +89,29 @@ def test_the_correction_has_its_own_budget_row_drawn_as_a_diameter_error() -> No
     u = np.array([r.u_m for r in b.rows])
     assert b.combined == pytest.approx(float(np.sqrt(np.sum(u * u))), rel=1e-12)
     assert "footprint bias correction" not in BEAM_SOURCES
+
+
+def test_the_monte_carlo_of_a_footprint_fit_is_not_shifted_by_its_correction() -> None:
+    """The Monte Carlo's replicas are thin-beam refits: they carry the thin beam's bias, not the
+    footprint model's, so a footprint fit's correction (stored where the thin beam's is) must not
+    move their interval (it moved it by -b, 0.2-0.26 mm on the service sweeps)."""
+    from bench import seed003_reproduction as seed
+    from lrms.covariance import NoiseModel
+    from lrms.cylinder import refine_cylinder
+    from lrms.uncertainty import monte_carlo_interval
+
+    nm, r = NoiseModel(), 0.06875
+    pts, rays = seed.noisy_scan(
+        seed.sweep_points(radius=r, step_alpha_deg=1.0, step_beta_deg=1.0), nm, np.random.default_rng(2)
+    )
+    fit = refine_cylinder(pts, seed.seed_cylinder(r), rays=rays, gate=np.inf, max_rounds=1)
+    extra = {"bias_correction_diameter_m": 3e-4, "footprint_bias_u_m": 1.7e-4, "edge_mode_first": 1.0}
+
+    def mc(f: CylinderFit) -> tuple[float, float]:
+        m = monte_carlo_interval(f, rays, noise=nm, n=50, rng=np.random.default_rng(3), p=seed.P)
+        return m.low, m.high
+
+    assert mc(dataclasses.replace(fit, extra=extra)) == pytest.approx(mc(fit), abs=1e-12)
+    # a thin-beam correction under the same key still shifts them
+    thin = mc(dataclasses.replace(fit, extra={"bias_correction_diameter_m": 3e-4}))
+    assert thin == pytest.approx(tuple(v - 3e-4 for v in mc(fit)), abs=1e-12)

@@ -15,17 +15,23 @@ model fails) with most of the radius's information. Seed 13 is such a sweep (``s
 error -0.24 mm): an error of the sweeps' usual size there is 4 ``std_m``.
 
 Fixed since (``lrms.cylinder.refine.hit_information`` and ``lrms.cylinder.bias.smoothed_covariance``:
-the covariance leaves out miss rows and averages the grazing sandwich over its own interval): the
-same 40 seeds give ``std_m`` 0.492-0.870 mm against a 0.494 mm scatter, none beyond 2 ``std_m``;
-seed 13 gives ``std_m`` 0.522 mm for an error of -0.60 mm. The check below fails on the old code.
+the covariance leaves out miss rows and averages the grazing sandwich over its own interval; and the
+dominant-beam step keeps a clean sweep's own limb beam): the same 40 seeds give ``std_m`` 0.492 /
+0.603 / 0.870 mm (min / median / max) against a 0.484 mm scatter, RMS(error / ``std_m``) 0.76, none
+beyond 2 ``std_m``; seed 13 gives ``std_m`` 0.522 mm for an error of -0.60 mm. Measured by fitting
+seeds 3-42 with :func:`fit` and taking the errors' standard deviation and RMS(error / ``std_m``)
+(the reviewer's ``cov40.py``; 33 s). The seed-13 check below fails on the old code.
 """
 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
+import pytest
 
+from lrms.cylinder import pipeline
 from service import fitting
 from service.config import load_config
 from service.models import MeasurementRequest
@@ -35,8 +41,9 @@ from sim.scene.sensor import continuous_sweep_cloud
 
 TRUE_D = 0.1375
 SPEED = math.radians(20.0)
-#: the diameters' scatter over 40 such sweeps (seeds 3-42), measured (see the module docstring)
-SCATTER_M = 0.445e-3
+#: the diameters' scatter over 40 such sweeps (seeds 3-42), re-measured after the fixes (see the
+#: module docstring; 0.445 mm on the code of the first measurement)
+SCATTER_M = 0.484e-3
 
 
 def offline_sweep(seed: int) -> MappedSweep:
@@ -85,6 +92,22 @@ def test_a_typical_offline_sweep_is_within_its_std_m() -> None:
     assert abs(r["error_m"]) <= 2 * r["std_m"], r
 
 
-def test_std_m_does_not_collapse_below_half_the_diameters_scatter() -> None:
+def test_std_m_does_not_collapse_below_the_diameters_scatter(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Seed 13, the sweep whose ``std_m`` once collapsed to 0.107 mm: ``std_m`` within 20 % of the
+    sweeps' scatter and the error within 3 ``std_m`` (a 2x under-report fails). The sweep is clean
+    (no clutter beam), so the dominant-beam step (``_without_dominant_beams``) must return its fit
+    unchanged: it once dropped the part's own limb beam (leverage 0.969, 1.0 mm from the true
+    surface) for a cost drop of 1.5, moving the error from -0.60 to -0.76 mm."""
+    seen: list[tuple[object, object]] = []
+    step = pipeline._without_dominant_beams
+
+    def recorded(*args: Any) -> Any:
+        out = step(*args)
+        seen.append((args[2], out))
+        return out
+
+    monkeypatch.setattr(pipeline, "_without_dominant_beams", recorded)
     r = fit(13)
-    assert r["std_m"] >= SCATTER_M / 2, r
+    assert seen and all(out is fit_in for fit_in, out in seen)
+    assert r["std_m"] >= 0.8 * SCATTER_M, r
+    assert abs(r["error_m"]) <= 3 * r["std_m"], r
