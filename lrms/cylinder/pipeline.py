@@ -279,11 +279,12 @@ def _second_look(
     grossly (``first``: its result, of chi2/dof above :data:`CHI2_GROSS`; ``None`` if it found none
     or its fit failed a check).
 
-    A wall missed by the background planes (its sparse sample of 3000 points at 6 m not one
-    10 cm-connected piece, :func:`~lrms.cylinder.detect._plane_extent`) fills the RANSAC's pool,
-    whose best-supported candidates are then room-sized cylinders tangent to it; every attempt
-    refines one of those to chi2/dof 2.5-6 and the best of them came back (D = 2-3.6 m on a
-    0.1375 m part). Returns the second fit when ``first`` is ``None`` or the second clearly
+    A wall missed by the background planes fills the RANSAC's pool, whose best-supported
+    candidates are then room-sized cylinders tangent to it; every attempt refines one of those to
+    chi2/dof 2.5-6 and the best of them came back (D = 2-3.6 m on a 0.1375 m part). The cause
+    found then (a sparse sample of 3000 points at 6 m not one 10 cm-connected piece) is fixed in
+    :func:`~lrms.cylinder.detect.plane_cell` (cells scaled to the sample's spacing); this second
+    look stays as the safety net. Returns the second fit when ``first`` is ``None`` or the second clearly
     improves on it (chi2/dof below :data:`SECOND_LOOK_GAIN` times the first's), else ``first``
     (also when the second look fails); ``None`` if neither found one."""
     try:
