@@ -291,9 +291,11 @@ def first_hit_range(
     safeguarded Newton iteration. Returns ``T`` and ``dT / dF`` at ``T`` (capped at 1 m per unit
     share): where the threshold falls near the limb, ``F`` is flat and a small error of the share
     moves ``T`` by millimetres. (The sub-rays' tilt across the beam changes their path length
-    by ``t tilt^2 / 2``, about 0.02 mm at one sigma: left out.) Newton always starts from the
-    front's quantile below, never from a previous solution (a warm start moved 2 beams of a test
-    cloud to another root, 7-9 mm away).
+    by ``t tilt^2 / 2``, about 0.02 mm at one sigma: left out.) Newton starts from the root of
+    the one-node model (:data:`_START_NODES`), never from a previous solution (a warm start moved
+    2 beams of a test cloud to another root, 7-9 mm away). ``F`` is not monotone in ``T`` (the
+    spot widens with ``T``): where it crosses the target twice, which crossing is found depends
+    on the start (docs/cylinder.md, section 7, branch fhspeed: 1 solve in about a million).
     """
     return _first_newton(x0, t_ca, cos_axis, radius, s0, sd, np.minimum(tau, 0.999 * c), c)
 
