@@ -291,9 +291,11 @@ def first_hit_range(
     safeguarded Newton iteration. Returns ``T`` and ``dT / dF`` at ``T`` (capped at 1 m per unit
     share): where the threshold falls near the limb, ``F`` is flat and a small error of the share
     moves ``T`` by millimetres. (The sub-rays' tilt across the beam changes their path length
-    by ``t tilt^2 / 2``, about 0.02 mm at one sigma: left out.) Newton always starts from the
-    front's quantile below, never from a previous solution (a warm start moved 2 beams of a test
-    cloud to another root, 7-9 mm away).
+    by ``t tilt^2 / 2``, about 0.02 mm at one sigma: left out.) Newton starts from the root of
+    the one-node model (:data:`_START_NODES`), never from a previous solution (a warm start moved
+    2 beams of a test cloud to another root, 7-9 mm away). ``F`` is not monotone in ``T`` (the
+    spot widens with ``T``): where it crosses the target twice, which crossing is found depends
+    on the start (docs/cylinder.md, section 7, branch fhspeed: 1 solve in about a million).
     """
     return _first_newton(x0, t_ca, cos_axis, radius, s0, sd, np.minimum(tau, 0.999 * c), c)
 
@@ -307,25 +309,35 @@ def _first_newton(
     sd: float,
     target: FloatArray,
     c: FloatArray,
+    nodes: tuple[FloatArray, FloatArray] | None = None,
+    tol: float = 1e-11,
 ) -> tuple[FloatArray, FloatArray]:
     """:func:`first_hit_range` at the share ``target`` of each beam, ``radius`` a number or one per
-    beam (the Jacobian's columns solved in one call: each beam's iteration is its own)."""
+    beam (the Jacobian's columns solved in one call: each beam's iteration is its own). ``nodes``:
+    the quadrature along the axis (default the 8 Gauss-Hermite nodes, started from the root of the
+    one-node model, :data:`_START_NODES`, solved to ``START_TOL``)."""
     p = np.sqrt(np.maximum(1.0 - cos_axis * cos_axis, 1e-12))
     depth = radius / p  # range extent of the part's front along the beam
     ys = (s0 + sd * np.maximum(t_ca, 0.0)) * np.abs(cos_axis) / p
     lo = t_ca - depth - 6.0 * ys - 1e-9
     hi = t_ca + 6.0 * ys + 1e-9
-    # start: the front's one-sided quantile, well inside the bracket
+    # start: the front's one-sided quantile, well inside the bracket; for the full quadrature, the
+    # root of the one-node model (an eighth of the cost per step) found from there
     big_t = np.clip(t_ca - depth + 0.5 * (1.0 - np.minimum(target / np.maximum(c, 1e-12), 1.0)) * depth, lo, hi)
+    if nodes is None and _START_NODES is not None:
+        pre, _ = _first_newton(x0, t_ca, cos_axis, radius, s0, sd, target, c, _START_NODES, START_TOL)
+        big_t = np.clip(pre, lo, hi)
     # safeguarded Newton on the beams not yet converged only (most take 3-5 steps, a few bisect)
     act = np.arange(big_t.size)
     per_beam = None if np.ndim(radius) == 0 else np.asarray(radius, dtype=np.float64)
+    fp_last = np.zeros(big_t.size)  # dF/dT at each beam's last iterate (the slope, read there)
     for _ in range(60):
         if act.size == 0:
             break
         bt = big_t[act]
         rad = radius if per_beam is None else per_beam[act]
-        f, fp = _first_share(bt, x0[act], t_ca[act], cos_axis[act], rad, s0, sd)
+        f, fp = _first_share(bt, x0[act], t_ca[act], cos_axis[act], rad, s0, sd, nodes)
+        fp_last[act] = fp
         f = f - target[act]
         la = np.where(f < 0, bt, lo[act])
         ha = np.where(f >= 0, bt, hi[act])
@@ -333,9 +345,19 @@ def _first_newton(
         step = bt - f / np.maximum(fp, 1e-300)
         new = np.where((step > la) & (step < ha), step, 0.5 * (la + ha))
         big_t[act] = new
-        act = act[np.abs(new - bt) >= 1e-11]
-    _, fp = _first_share(big_t, x0, t_ca, cos_axis, radius, s0, sd)
-    return np.asarray(big_t, dtype=np.float64), np.asarray(1.0 / np.maximum(fp, 1.0), dtype=np.float64)
+        act = act[np.abs(new - bt) >= tol]
+    if act.size:  # not converged in 60 steps: the slope at the final iterate
+        rad = radius if per_beam is None else per_beam[act]
+        fp_last[act] = _first_share(big_t[act], x0[act], t_ca[act], cos_axis[act], rad, s0, sd, nodes)[1]
+    # the slope at the last iterate, within 1e-11 m of the root (not one more evaluation of F)
+    return np.asarray(big_t, dtype=np.float64), np.asarray(1.0 / np.maximum(fp_last, 1.0), dtype=np.float64)
+
+
+#: The Newton start of the first-hit range: the root of the one-node model (the spot's centre
+#: along the axis), to START_TOL (m); None: the front's quantile alone (before this, median 6 steps
+#: of the full quadrature per beam).
+_START_NODES: tuple[FloatArray, FloatArray] | None = (np.zeros(1), np.ones(1))
+START_TOL = 1e-7
 
 
 def _first_share(
@@ -346,16 +368,19 @@ def _first_share(
     radius: float | FloatArray,
     s0: float,
     sd: float,
+    nodes: tuple[FloatArray, FloatArray] | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """``F(T)`` of :func:`first_hit_range` (the share of the spot met at a range ``<= T``) and ``dF/dT``
-    (``radius`` a number or one per beam)."""
+    (``radius`` a number or one per beam; ``nodes``: the quadrature along the axis, default
+    :data:`_GH_X` / :data:`_GH_W`)."""
     p = np.sqrt(np.maximum(1.0 - cos_axis * cos_axis, 1e-12))
     depth = radius / p
     if np.ndim(radius):
         radius = np.asarray(radius, dtype=np.float64)[:, None]
     ys = (s0 + sd * np.maximum(t_ca, 0.0)) * np.abs(cos_axis) / p
-    eta = _GH_X[None, :]
-    h = _GH_W[None, :]
+    gx, gw = (_GH_X, _GH_W) if nodes is None else nodes
+    eta = gx[None, :]
+    h = gw[None, :]
     ax0 = np.abs(x0)[:, None]
     pp = p[:, None]
     tt = big_t[:, None] - eta * ys[:, None]
@@ -369,6 +394,81 @@ def _first_share(
     dxt = np.where(inside, np.square(pp) * dd / np.maximum(xt, 1e-9 * radius), 0.0)
     dens = (np.exp(-0.5 * zp * zp) + np.exp(-0.5 * zm * zm)) / (np.sqrt(2 * np.pi) * sig)
     return np.asarray(f, dtype=np.float64), np.asarray(np.sum(h * dens * dxt, axis=1), dtype=np.float64)
+
+
+def _first_share_grad(
+    big_t: FloatArray,
+    x0: FloatArray,
+    t_ca: FloatArray,
+    cos_axis: FloatArray,
+    radius: float,
+    s0: float,
+    sd: float,
+) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+    """``F(T)`` and ``dF/dT`` as :func:`_first_share`, and the partial derivatives of ``F`` at fixed
+    ``T`` in the beam geometry: columns ``x0``, ``t_ca``, ``cos_axis``, ``radius`` (``(N, 4)``), in
+    the same pass (no further ``ndtr``). The Jacobian's columns come from them by the chain rule
+    (:func:`_first_jacobian`) instead of one evaluation of ``F`` per column."""
+    cos_ = cos_axis[:, None]
+    p = np.sqrt(np.maximum(1.0 - cos_ * cos_, 1e-12))
+    spot = (s0 + sd * np.maximum(t_ca, 0.0))[:, None]
+    q = np.abs(cos_) / p
+    ys = spot * q
+    dys_dt = sd * (t_ca > 0.0)[:, None] * q
+    dys_dc = spot * np.sign(cos_) / (p * p * p)
+    eta = _GH_X[None, :]
+    h = _GH_W[None, :]
+    ax0 = np.abs(x0)[:, None]
+    tc = t_ca[:, None]
+    tt = big_t[:, None] - eta * ys
+    dd = tc - tt
+    inside = (dd > 0) & (dd < radius / p)
+    x2 = np.where(dd <= 0, radius * radius, np.maximum(radius * radius - np.square(p * dd), 0.0))
+    xt = np.sqrt(x2)
+    m = np.minimum(tt, tc)
+    sig = s0 + sd * np.maximum(m, 0.0)
+    zp, zm = (xt - ax0) / sig, (-xt - ax0) / sig
+    f = np.sum(h * (ndtr(zp) - ndtr(zm)), axis=1)
+    phi_p = np.exp(-0.5 * zp * zp) / np.sqrt(2 * np.pi)
+    phi_m = np.exp(-0.5 * zm * zm) / np.sqrt(2 * np.pi)
+    inv_xt = 1.0 / np.maximum(xt, 1e-9 * radius)
+    # d xt: on the front (inside) xt = sqrt(r^2 - (p dd)^2); behind the axis (dd <= 0) xt = r
+    dxt_ddd = np.where(inside, -p * p * dd * inv_xt, 0.0)
+    dxt_dp = np.where(inside, -p * dd * dd * inv_xt, 0.0)
+    dxt_dr = np.where(inside, radius * inv_xt, np.where(dd <= 0, 1.0, 0.0))
+    # d sig: sd where the node's range (capped at t_ca) is positive
+    live = sd * (m > 0.0)
+    front = tt < tc
+    a_x = (phi_p + phi_m) / sig  # weight of d xt
+    a_a = -(phi_p - phi_m) / sig  # of d |x0|
+    a_s = -(phi_p * zp - phi_m * zm) / sig  # of d sig
+    # partials of the node's range tt and depth dd in t_ca and cos_axis (T fixed)
+    dtt_dt, dtt_dc = -eta * dys_dt, -eta * dys_dc
+    ddd_dt, ddd_dc = 1.0 - dtt_dt, -dtt_dc
+    dsig_dt = live * np.where(front, dtt_dt, 1.0)
+    dsig_dc = live * np.where(front, dtt_dc, 0.0)
+    dp_dc = -cos_ / p
+    d_x0 = np.sum(h * a_a, axis=1) * np.sign(x0)
+    d_t = np.sum(h * (a_x * dxt_ddd * ddd_dt + a_s * dsig_dt), axis=1)
+    d_c = np.sum(h * (a_x * (dxt_ddd * ddd_dc + dxt_dp * dp_dc) + a_s * dsig_dc), axis=1)
+    d_r = np.sum(h * a_x * dxt_dr, axis=1)
+    # dF/dT as _first_share has it (the spot's growth with T left out: Newton's and the slope's)
+    fp = np.sum(h * a_x * np.where(inside, p * p * dd * inv_xt, 0.0), axis=1)
+    grad = np.stack([d_x0, d_t, d_c, d_r], axis=1)
+    # a node near the front's tip (xt -> 0, dxt / d dd -> infinity): F is far from linear there
+    # over the Jacobian's steps, so such a beam's change is evaluated, not linearised
+    near = np.any((dd > 0) & (np.abs(radius * radius - np.square(p * dd)) < np.square(_LINEAR_XT * radius)), axis=1)
+    return (
+        np.asarray(f, dtype=np.float64),
+        np.asarray(fp, dtype=np.float64),
+        np.asarray(grad, dtype=np.float64),
+        np.asarray(near, dtype=np.bool_),
+    )
+
+
+#: Lateral half-width (share of the radius) of a node's front below which :func:`_first_jacobian`
+#: evaluates the beam's change of ``F`` instead of linearising it (the square root's tip).
+_LINEAR_XT = 0.1
 
 
 @dataclass
@@ -447,18 +547,20 @@ def _first_jacobian(
 
     Each parameter is stepped in the cheap closed forms (the beam geometry, the covered share
     ``c``, ``tau``); the first-hit range then moves by the implicit-function step
-    ``dT = -(F_j(T0) - target_j - F_0(T0) + target_0) / F'(T0)`` (one evaluation of ``F``), and its
-    slope ``dT/dF`` is read at ``T0 + dT`` (one more). Forward differences of the rows follow:
-    first order in the step like a plain finite difference, at two ``F`` evaluations per column
-    instead of a Newton solve. Beams where ``F`` is flat at ``T0`` (``F' < 1`` per metre: a spot that
-    barely meets the part) are re-solved per column, as a plain difference would.
+    ``dT = -(dF_j - target_j + target_0) / F'(T0)``, ``dF_j`` the change of ``F`` at ``T0`` to first
+    order in the geometry's change (the partials of :func:`_first_share_grad`: one evaluation of
+    ``F`` for all columns; before, one per column). Forward differences of the rows follow: first
+    order in the step like a plain finite difference. With ``share_u`` the slope ``dT/dF`` is read
+    at ``T0 + dT`` (one evaluation per column). Beams where ``F`` is flat at ``T0`` (``F' < 1`` per
+    metre: a spot that barely meets the part) are re-solved per column, as a plain difference would.
     """
     a, w, r = frame.unpack(theta[:5])
     tau = float(expit(theta[5]))
     g = _geometry(a, w, float(r), rays, optics, 1.0)
     big_t, slope = (warm or _Warm()).solve(theta, g, tau)
-    f0, fp0 = _first_share(big_t, g.x0, g.t_ca, g.cos_axis, g.radius, g.s0, g.sd)
-    f0 = f0 - np.minimum(tau, 0.999 * g.c)
+    f0, fp0, grad, near_mask = _first_share_grad(big_t, g.x0, g.t_ca, g.cos_axis, g.radius, g.s0, g.sd)
+    target0 = np.minimum(tau, 0.999 * g.c)
+    near = np.flatnonzero(near_mask)
     flat = np.flatnonzero(fp0 < 1.0)  # F flat at T (a spot that barely meets the part): re-solved
     fp0 = np.maximum(fp0, 1.0)
     r0 = _first_rows(g, big_t, slope, tau, rays, optics)
@@ -470,8 +572,17 @@ def _first_jacobian(
         aj, wj, rj = frame.unpack(th[:5])
         tj = float(expit(th[5]))
         gj = _geometry(aj, wj, float(rj), rays, optics, 1.0) if j < 5 else g
-        fj, _ = _first_share(big_t, gj.x0, gj.t_ca, gj.cos_axis, gj.radius, gj.s0, gj.sd)
-        cols.append((gj, tj, big_t - (fj - np.minimum(tj, 0.999 * gj.c) - f0) / fp0))
+        # F's change at T0 to first order in the geometry's (the steps are 1e-6)
+        df = (
+            grad[:, 0] * (gj.x0 - g.x0)
+            + grad[:, 1] * (gj.t_ca - g.t_ca)
+            + grad[:, 2] * (gj.cos_axis - g.cos_axis)
+            + grad[:, 3] * (gj.radius - g.radius)
+        )
+        if near.size and j < 5:
+            fn, _ = _first_share(big_t[near], gj.x0[near], gj.t_ca[near], gj.cos_axis[near], gj.radius, g.s0, g.sd)
+            df[near] = fn - f0[near]
+        cols.append((gj, tj, big_t - (df - (np.minimum(tj, 0.999 * gj.c) - target0)) / fp0))
     if flat.size:  # every column's flat beams in one Newton solve
         tt_flat, _ = _first_newton(
             np.concatenate([gj.x0[flat] for gj, _, _ in cols]),
