@@ -234,10 +234,24 @@ def test_measurements_on_a_miscalibrated_rig_use_the_active_calibration(
     # now that the motor samples carry the drive's latch time (-0.9 mm once before, with the SYNC time's
     # smear, docs/service.md known limits): the calibrated result must be the closer
     assert b["sweep"]["motor_time_source"] == "drive"
-    assert b["diameter_m"] - truth < -0.5e-3  # -1.34 mm seen in a fresh-clone CI run: -1.5 mm was too tight
-    assert abs(a["diameter_m"] - truth) < abs(b["diameter_m"] - truth)
+    # what the next failure needs to be traced (one fresh-clone run, 2026-11-24: before -0.63 mm, after
+    # +0.97 mm, not reproduced in 7 runs idle or with two CPU hogs: before -2.4..-4.5, after -0.78..+0.38 mm)
+    why = {
+        k: {
+            "error_mm": 1e3 * (r["diameter_m"] - truth),
+            "u_c_mm": 1e3 * r["uncertainty"]["combined_m"],
+            "inliers": r.get("n_inliers"),
+            "chi2_dof": r.get("chi2_dof"),
+            "scans_missing": r["sweep"].get("scans_missing"),
+            "scan_gaps": r["sweep"].get("scan_gaps"),
+            "motor_timing_jitter_s": r["sweep"].get("motor_timing_jitter_s"),
+        }
+        for k, r in (("before", b), ("after", a))
+    }
+    assert b["diameter_m"] - truth < -0.5e-3, why  # -1.34 mm seen in a fresh-clone CI run: -1.5 mm was too tight
+    assert abs(a["diameter_m"] - truth) < abs(b["diameter_m"] - truth), why
     # the fit's own noise (u ~ 0.5 mm at 20 deg/s) dominates the calibrated result: within 3 u_c
-    assert abs(a["diameter_m"] - truth) <= 3 * a["uncertainty"]["combined_m"]
+    assert abs(a["diameter_m"] - truth) <= 3 * a["uncertainty"]["combined_m"], why
     tilt = [np.rad2deg(np.arccos(abs(r["axis_direction"][2]))) for r in (b, a)]
     assert tilt[0] > 1.0 and tilt[1] < 0.4, tilt  # 1.4 deg before; after: the fit's noise (0.015, 0.12 deg seen)
     rows_b = {r["source"]: r for r in b["uncertainty"]["budget"]}
