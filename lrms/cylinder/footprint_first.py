@@ -67,9 +67,7 @@ def _first_newton(
     beam (the Jacobian's columns solved in one call: each beam's iteration is its own). ``nodes``:
     the quadrature along the axis (default the 8 Gauss-Hermite nodes, started from the root of the
     one-node model, :data:`_START_NODES`, solved to ``START_TOL``)."""
-    p = np.sqrt(np.maximum(1.0 - cos_axis * cos_axis, 1e-12))
-    depth = radius / p  # range extent of the part's front along the beam
-    ys = (s0 + sd * np.maximum(t_ca, 0.0)) * np.abs(cos_axis) / p
+    _, depth, ys = _front_scales(t_ca, cos_axis, radius, s0, sd)
     lo = t_ca - depth - 6.0 * ys - 1e-9
     hi = t_ca + 6.0 * ys + 1e-9
     # start: the front's one-sided quantile, well inside the bracket; for the full quadrature, the
@@ -104,6 +102,17 @@ def _first_newton(
     return np.asarray(big_t, dtype=np.float64), np.asarray(1.0 / np.maximum(fp_last, 1.0), dtype=np.float64)
 
 
+def _front_scales(
+    t_ca: FloatArray, cos_axis: FloatArray, radius: float | FloatArray, s0: float, sd: float
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Per beam: ``p = |u x w|``, the range extent ``radius / p`` of the part's front along the beam,
+    and the range change ``ys`` per sigma of the spot along the axis (``s cos_axis / p``)."""
+    p = np.sqrt(np.maximum(1.0 - cos_axis * cos_axis, 1e-12))
+    depth = radius / p  # range extent of the part's front along the beam
+    ys = (s0 + sd * np.maximum(t_ca, 0.0)) * np.abs(cos_axis) / p
+    return p, np.asarray(depth, dtype=np.float64), ys
+
+
 #: The Newton start of the first-hit range: the root of the one-node model (the spot's centre
 #: along the axis), to START_TOL (m); None: the front's quantile alone (before this, median 6 steps
 #: of the full quadrature per beam).
@@ -124,11 +133,9 @@ def _first_share(
     """``F(T)`` of :func:`first_hit_range` (the share of the spot met at a range ``<= T``) and ``dF/dT``
     (``radius`` a number or one per beam; ``nodes``: the quadrature along the axis, default
     :data:`_GH_X` / :data:`_GH_W`)."""
-    p = np.sqrt(np.maximum(1.0 - cos_axis * cos_axis, 1e-12))
-    depth = radius / p
+    p, depth, ys = _front_scales(t_ca, cos_axis, radius, s0, sd)
     if np.ndim(radius):
         radius = np.asarray(radius, dtype=np.float64)[:, None]
-    ys = (s0 + sd * np.maximum(t_ca, 0.0)) * np.abs(cos_axis) / p
     gx, gw = (_GH_X, _GH_W) if nodes is None else nodes
     eta = gx[None, :]
     h = gw[None, :]
