@@ -373,6 +373,7 @@ def test_reprocess_on_a_postgresql_store_with_the_service_calibration_of_a_rig(
         assert sorted(v.measurement_id for v in versions) == sorted(ids["press-1"])
         kin = kinematics_of_calibration(cal.calibration.to_dict())
         assert kin["range_scale_ppm"] == pytest.approx(1e4) and kin["p_m"] == model.p
+        off_prediction: list[float] = []
         for v in versions:
             assert v.calibration_id == cal.id and v.version == 1
             raw = s.get(v.measurement_id).raw_path
@@ -381,14 +382,29 @@ def test_reprocess_on_a_postgresql_store_with_the_service_calibration_of_a_rig(
             assert v.result["diameter_m"] == pytest.approx(
                 replay(raw, kinematics=kin)["result"]["diameter_m"], abs=1e-9
             )
-            # ... and the +1 % range scale made it about 1 % larger than the rig's own result (1.34 % and 2.5 % seen
-            # when the motor samples carried the SYNC time's smear; 0.98..0.99 % in 6 fits with the drive's latch time)
+            # ... and the +1 % range scale made it about 1 % larger than the rig's own result. What the
+            # geometry predicts is the original fit's sensitivity to k1 (its budget's "range scale" row):
+            # 0.976..1.012 % of D on these sweeps (the optical centre's offset p = 0.1 m from the motor
+            # axis: a range scale is not a pure scaling of the cloud). The re-fit is a new non-linear fit:
+            # on 64 of 68 recorded sweeps it moved by that prediction to within 0.021 % of D; on 4 the
+            # 32-scan sweep's likelihood, several local minima a fraction of u apart (a limb beam left
+            # tangent), gave the scaled cloud another minimum and another bias correction: -0.72, -0.38,
+            # +0.14, +0.63 % of D off the prediction, at most 0.54 of the fit's own u (type A). So each
+            # re-fit is held to its prediction within that u, and the median of the three (which one
+            # such jump does not move) to 0.1 % of D: a k1 not applied, or applied twice, is 1 % off.
+            # (1.34 % and 2.5 % were seen when the motor samples carried the SYNC time's smear.)
             original = s.get(v.measurement_id).result
             assert original is not None
             ratio = v.result["diameter_m"] / original["diameter_m"] - 1.0
-            print(f"range scale ratio - 1: {ratio:+.4f}")
-            assert ratio == pytest.approx(0.01, abs=0.005)
+            (row,) = [r for r in original["uncertainty"]["budget"] if r["source"] == "range scale"]
+            predicted = row["c"] * kin["range_scale_ppm"] / original["diameter_m"]
+            assert predicted == pytest.approx(0.01, abs=5e-4)
+            u_fit = original["uncertainty"]["std_m"]
+            print(f"range scale ratio - 1: {ratio:+.5f}, predicted {predicted:+.5f}, u {1e3 * u_fit:.2f} mm")
+            assert abs(ratio - predicted) * original["diameter_m"] < u_fit
+            off_prediction.append(ratio - predicted)
             assert s.get(v.measurement_id).result == original  # kept as it was
+        assert abs(float(np.median(off_prediction))) < 1e-3, off_prediction
     finally:
         s.close()
 
