@@ -4,7 +4,7 @@ beyond :data:`~lrms.cylinder.NOMINAL_K` of its u is a :class:`~lrms.errors.Nomin
 
 ``tests/data/cylinder/room-sweep-seed7-074-roi.npz``: sweep 74 (0-based) of the bench's seed-7
 stream, ``PYTHONPATH=. python -m bench.bench_sensor_model --only seed003 --clouds roi --fit footprint
---no-offset --no-ideal --edges 0.3:weighted --seed 7 --sweep-list 74 --dump DIR`` on the
+--no-offset --no-ideal --edges 0.3:weighted --seed 7 --sweeps 75 --sweep-list 74 --dump DIR`` on the
 128-sub-ray ray cast of the ``seed003-room`` scene (137.5 mm part at 2.53 m, LMS1xx footprint,
 30 % energy-weighted echoes): the whole "roi" cloud (4605 points, stored as float32) and the
 bench's fit seed for that sweep. The footprint fit put it at 151.5 mm, 0.2 mm above the
