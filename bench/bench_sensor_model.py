@@ -21,10 +21,12 @@ for all beams and the kept beams' taken, so the clouds are those of the whole sw
 
 The angle noise (1.74e-3 deg, 0.08 mm at 2.5 m) is left out, so the geometry of a scene is ray-cast
 once and each sweep draws new range noise (and, for the LMS1xx, new echoes from the same sub-ray
-hits): the sweeps differ by noise only. Printed per case: sweeps fitted / failed (no cylinder,
-or a diameter more than 50 % off: "gross"), mean error of the diameter (mm) +- its standard error,
-the spread (std, mm), the mean GUM standard uncertainty the fit reports, and the share of sweeps
-whose d +- 2 u covers the truth.
+hits): the sweeps differ by noise only. ``--sweep-list`` fits the given sweeps of the stream
+alone (the others drawn, not fitted), ``--dump DIR`` saves each fitted sweep's cloud and fit seed
+(npz) for refitting it elsewhere; a failed sweep's line gives its index. Printed per case: sweeps
+fitted / failed (no cylinder, or a diameter more than 50 % off: "gross"), mean error of the
+diameter (mm) +- its standard error, the spread (std, mm), the mean GUM standard uncertainty the
+fit reports, and the share of sweeps whose d +- 2 u covers the truth.
 
 ``--fit footprint`` fits the same clouds with the beam-footprint model (``fit_cylinder(...,
 optics=BeamOptics())``: LMS1xx spot, edge family and threshold estimated, not told) and a nominal
@@ -85,6 +87,10 @@ EDGE_FAMILY = [(thr, mode) for thr in (0.1, 0.3, 0.5) for mode in ("weighted", "
 OFFSET_ROW = True
 IDEAL_ROW = True
 PROGRESS = 0
+#: Sweep indices (in the case's random stream) to fit (``--sweep-list``); None: every sweep.
+SWEEP_LIST: set[int] | None = None
+#: Directory to save each fitted sweep's cloud and fit seed in (``--dump``), or None.
+DUMP: Path | None = None
 #: Echo formation of the roi cloud on the beams that meet the ROI box alone (``--all-beams``: off).
 ROI_BEAMS = True
 #: (scene, cloud, fit, case, row) of every case run, for the summary table.
@@ -194,6 +200,8 @@ class Row:
     u: list[float] = dataclasses.field(default_factory=list)
     failed: int = 0
     gross: int = 0
+    #: fitted just outside the nominal diameter range, within its u (``extra["nominal_excess_m"]``)
+    flagged: int = 0
     points: int = 0
     sweeps: int = 0
     modes: list[str] = dataclasses.field(default_factory=list)
@@ -201,6 +209,8 @@ class Row:
     def text(self) -> str:
         n = len(self.errors)
         head = f"{n:3d} ok {self.failed:2d} failed {self.gross:2d} gross, {self.points / max(self.sweeps, 1):6.0f} pts"
+        if self.flagged:
+            head += f" ({self.flagged} outside the nominal range, flagged)"
         if n == 0:
             return head
         e = 1e3 * np.array(self.errors)
@@ -219,12 +229,17 @@ def run_case(g: Geometry, draw: Draw, sweeps: int, cloud: str, seed: int, fits: 
     rng = np.random.default_rng(seed)
     noise = NoiseModel()
     rows = {f: Row() for f in fits}
-    for _ in range(sweeps):
+    for sweep in range(sweeps):
         ranges, valid = draw(rng)
+        fit_seed = int(rng.integers(1 << 31))
+        if SWEEP_LIST is not None and sweep not in SWEEP_LIST:
+            continue  # drawn (the stream stays that of every sweep), not fitted
         pts = g.origins[valid] + ranges[valid, None] * g.dirs[valid]
         if cloud == "roi":
             pts = pts[np.all((pts >= g.roi_lo) & (pts <= g.roi_hi), axis=1)]
-        fit_seed = int(rng.integers(1 << 31))
+        if DUMP is not None:
+            DUMP.mkdir(parents=True, exist_ok=True)
+            np.savez_compressed(DUMP / f"{cloud}-seed{seed}-sweep{sweep:04d}.npz", points=pts, fit_seed=fit_seed)
         for kind, row in rows.items():
             row.points += pts.shape[0]
             row.sweeps += 1
@@ -240,12 +255,12 @@ def run_case(g: Geometry, draw: Draw, sweeps: int, cloud: str, seed: int, fits: 
                         diameter_range=nominal_diameter_range(g.diameter),
                     )
             except LrmsError as ex:
-                print(f"    !! {kind}: {type(ex).__name__}: {ex}", flush=True)
+                print(f"    !! {kind} sweep {sweep}: {type(ex).__name__}: {ex}", flush=True)
                 row.failed += 1
                 continue
             except (ArithmeticError, ValueError, np.linalg.LinAlgError) as ex:
                 # not ours: an unattended 400-sweep run must not die on one sweep
-                print(f"    !! {kind}: {type(ex).__name__}: {ex}", flush=True)
+                print(f"    !! {kind} sweep {sweep}: {type(ex).__name__}: {ex}", flush=True)
                 row.failed += 1
                 continue
             err = fit.diameter - g.diameter
@@ -253,6 +268,13 @@ def run_case(g: Geometry, draw: Draw, sweeps: int, cloud: str, seed: int, fits: 
                 row.gross += 1
                 continue
             row.errors.append(err)
+            if "nominal_excess_m" in fit.extra:
+                row.flagged += 1
+                print(
+                    f"    .. {kind} sweep {sweep}: {1e3 * fit.diameter:.1f} mm, flagged: outside the nominal range"
+                    f" by {1e3 * fit.extra['nominal_excess_m']:+.1f} mm ({fit.extra['nominal_excess_u']:.2f} u)",
+                    flush=True,
+                )
             if "edge_mode_first" in fit.extra:
                 row.modes.append({1.0: "1st", 0.0: "wtd"}.get(fit.extra["edge_mode_first"], "thin"))
             x = fit.extra
@@ -338,8 +360,14 @@ def main(argv: list[str] | None = None) -> None:
         "--all-beams", action="store_true", help="form the roi cloud's echoes on every beam (slower, same clouds)"
     )
     parser.add_argument("--cache", default=None, help="directory keeping each scene's ray cast between runs")
+    parser.add_argument(
+        "--sweep-list", default=None, help="comma list of sweep indices to fit (the others drawn, not fitted)"
+    )
+    parser.add_argument("--dump", default=None, help="directory to save each fitted sweep's cloud (npz) in")
     args = parser.parse_args(argv)
-    global FOOTPRINT, OFFSET_ROW, IDEAL_ROW, PROGRESS, ROI_BEAMS
+    global FOOTPRINT, OFFSET_ROW, IDEAL_ROW, PROGRESS, ROI_BEAMS, SWEEP_LIST, DUMP
+    SWEEP_LIST = None if args.sweep_list is None else {int(i) for i in args.sweep_list.split(",") if i}
+    DUMP = None if args.dump is None else Path(args.dump)
     ROI_BEAMS = not args.all_beams
     FOOTPRINT = Footprint(sub_rays=args.sub_rays)
     OFFSET_ROW = not args.no_offset

@@ -246,6 +246,10 @@ def cylinder_result(
         },
         "footprint": _footprint_json(fit.extra) if optics is not None and line_of_sight else None,
         "diameter_range_m": None if diameter_range is None else [float(diameter_range[0]), float(diameter_range[1])],
+        # outside the range within its uncertainty (lrms.cylinder.nominal_check): the diameter minus
+        # the nearer bound, and that in units of the fit's u; None inside it
+        "diameter_range_excess_m": fit.extra.get("nominal_excess_m"),
+        "diameter_range_excess_u": fit.extra.get("nominal_excess_u"),
         "uncertainty": {
             **budget.to_dict(),
             "d_min_m": float(crit.d_min),

@@ -19,7 +19,7 @@ from lrms.cylinder.lm import LosProblem, levenberg_marquardt
 from lrms.cylinder.model import Cylinder, Rays, rays_from_points
 from lrms.cylinder.options import DetectOptions
 from lrms.cylinder.refine import INLIER_GATE, MISS_GATE, CylinderFit, refine_cylinder
-from lrms.errors import FitError
+from lrms.errors import FitError, NominalDiameterError
 
 if TYPE_CHECKING:
     from lrms.cylinder.footprint import BeamOptics
@@ -58,6 +58,53 @@ def nominal_diameter_range(nominal: float, tolerance: float | None = None) -> tu
     if tol >= nominal:
         raise FitError(f"diameter tolerance {tol} m leaves no positive diameter below the nominal {nominal} m")
     return float(nominal - tol), float(nominal + tol)
+
+
+#: Standard uncertainties (k = 1) a fit outside the nominal diameter range may be away from it and
+#: still be reported (flagged): the range is a plausibility check, not a hard bound (see
+#: :func:`nominal_check`).
+NOMINAL_K = 3.0
+#: The rows of ``CylinderFit.extra`` (m) that add to the fit's own u of the diameter in
+#: :func:`diameter_u`: the footprint fit's spot size, model choice and bias-correction rows.
+EXTRA_U_ROWS = ("edge_model_u_m", "edge_family_u_m", "footprint_bias_u_m")
+
+
+def diameter_u(fit: CylinderFit) -> float:
+    """The diameter's standard uncertainty as far as the fit knows it: the covariance's
+    (:attr:`CylinderFit.std_diameter`) and the footprint fit's rows :data:`EXTRA_U_ROWS` in
+    quadrature (the sensor's type-B rows of :mod:`lrms.budget` are not in it)."""
+    rows = [fit.std_diameter, *(fit.extra.get(k, 0.0) for k in EXTRA_U_ROWS)]
+    return float(np.sqrt(sum(float(r) ** 2 for r in rows)))
+
+
+def nominal_check(fit: CylinderFit, diameter_range: tuple[float, float], k: float = NOMINAL_K) -> CylinderFit:
+    """The final fit against the request's diameter range ``(low, high)`` (m).
+
+    Inside: ``fit`` unchanged. Outside by at most ``k`` times its standard uncertainty
+    (:func:`diameter_u`): the same fit, flagged in ``extra`` with ``nominal_excess_m`` (the
+    diameter minus the nearer bound: > 0 above the range, < 0 below) and ``nominal_excess_u``
+    (``|excess| / u``). Farther: :class:`~lrms.errors.NominalDiameterError`.
+
+    The range selects the part among other cylinders; the detection stages apply it to every
+    candidate (:func:`_radius_ok`). The final fit is the part's, and its diameter scatters: the
+    footprint fit of seed 003's 137.5 mm part at 2.5 m by 5.3 mm (std over sweeps) with a u of
+    4-7 mm, and with a family choice it cannot make (``edge_family_u_m`` 17-46 mm) up to +31 mm.
+    Rejecting such a fit at the range's edge would turn the fit's own scatter into "no part"
+    (4 of 120 sweeps: 123.4 and 151.5 mm against [123.8, 151.3] mm; 163.6 and 169.0 mm with u
+    of 19-47 mm, docs/cylinder.md); a diameter more than ``k`` u outside is no scatter."""
+    lo, hi = diameter_range
+    d = fit.diameter
+    if lo <= d <= hi:
+        return fit
+    excess = d - hi if d > hi else d - lo
+    u = diameter_u(fit)
+    in_u = abs(excess) / u if u > 0 else float("inf")
+    if not in_u <= k:
+        raise NominalDiameterError(
+            f"no cylinder of the nominal diameter found: {1e3 * d:.1f} mm (u {1e3 * u:.2f} mm) is outside"
+            f" [{1e3 * lo:.1f}, {1e3 * hi:.1f}] mm by {in_u:.1f} u (more than {k:g} u)"
+        )
+    return replace(fit, extra={**fit.extra, "nominal_excess_m": float(excess), "nominal_excess_u": float(in_u)})
 
 
 def _radius_ok(cyl: Cylinder, opt: DetectOptions) -> bool:
@@ -558,10 +605,8 @@ def fit_cylinder(
     if diameter_range is not None and not diameter_range[0] <= best.diameter <= diameter_range[1]:
         if look_again and not _noise_explains(best) and (second := _second_look(None, again, opt)):
             return second
-        raise FitError(
-            f"no cylinder of the nominal diameter found: {1e3 * best.diameter:.1f} mm is outside"
-            f" [{1e3 * diameter_range[0]:.1f}, {1e3 * diameter_range[1]:.1f}] mm"
-        )
+        # outside the range: flagged within NOMINAL_K u of it, NominalDiameterError beyond
+        best = nominal_check(best, diameter_range)
     result = replace(best, plane=plane, base_point=base, n_points=int(pts.shape[0]))
     if look_again and result.line_of_sight and result.chi2_dof > CHI2_GROSS:
         return _second_look(result, again, opt) or result

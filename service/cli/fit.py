@@ -57,7 +57,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     cyl.add_argument("--seed", type=int, default=0, help="random seed (RANSAC, Monte Carlo)")
     cyl.add_argument(
-        "--nominal-diameter", type=float, default=None, metavar="D", help="nominal diameter (m): reject other sizes"
+        "--nominal-diameter",
+        type=float,
+        default=None,
+        metavar="D",
+        help="nominal diameter (m): reject other sizes (a fit outside within 3 u of it: a warning)",
     )
     cyl.add_argument(
         "--diameter-tolerance",
@@ -284,6 +288,12 @@ def _print_text(result: dict[str, Any]) -> None:
             f"footprint: edge model {fp['edge_mode']}{tau}, u(edge) = {fp['edge_model_u_m'] * 1e3:.3f} mm,"
             f" u(family) = {fp.get('edge_family_u_m', 0.0) * 1e3:.3f} mm"
             + ("" if thin is None else f", thin-beam fit {thin * 1e3:.3f} mm")
+        )
+    if result.get("diameter_range_excess_m") is not None:
+        lo, hi = (1e3 * x for x in result["diameter_range_m"])
+        print(
+            f"warning: the diameter is outside the nominal range [{lo:.1f}, {hi:.1f}] mm by"
+            f" {result['diameter_range_excess_m'] * 1e3:+.2f} mm ({result['diameter_range_excess_u']:.2f} u of the fit)"
         )
     if u.get("monte_carlo"):
         m = u["monte_carlo"]
