@@ -123,7 +123,9 @@ def _multistart(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: DetectOption
                 best_cyl, best_cost = cyl, cost
     big, steps = MULTISTART_FULL_STEPS
     nfev = (steps if idx.size > big else 200) if polish else 0
-    return refine_cylinder(pts, best_cyl, rays=rays, max_rounds=1, max_nfev=nfev)
+    # unpolished, the winner's covariance is not computed: the refit that follows has its own
+    # (the grazing-weighted fit's, or :func:`_solved_on_inliers`'s)
+    return refine_cylinder(pts, best_cyl, rays=rays, max_rounds=1, max_nfev=nfev, covariance=polish)
 
 
 def _screened_start(prob: LosProblem, start: Cylinder, best_cost: float) -> tuple[Cylinder, float]:
@@ -144,9 +146,10 @@ def _los_fit(
     selection from ``start``, then (``multistart``) :func:`_multistart` around its solution; else
     the last solve may be on a subset of the inliers (a start for the selection by the scene
     model, which refits). ``polish``: see :func:`_multistart`."""
-    # the multi-start takes only the start and inliers of this fit (its covariance not computed)
+    # the multi-start takes only the start and inliers of this fit, and without ``polish`` a refit
+    # with its own covariance follows (the grazing-weighted fit's): the covariance is not computed
     fit = refine_cylinder(
-        pts, start, rays=rays, max_rounds=4, final_full=False, work_size=LOS_WORK, covariance=not multistart
+        pts, start, rays=rays, max_rounds=4, final_full=False, work_size=LOS_WORK, covariance=polish and not multistart
     )
     return _multistart(pts, rays, fit, opt, polish) if multistart else fit
 
@@ -398,11 +401,14 @@ def _without_dominant_beams(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: 
 def _solved_on_inliers(pts: FloatArray, rays: Rays, fit: CylinderFit) -> CylinderFit:
     """``fit`` solved on all its inliers (one round of :func:`refine_cylinder` from its model; its
     inlier selection and covariance with it), ``fit`` itself if that solve fails. For the
-    multi-start's winner left unsolved (``polish=False`` of :func:`_multistart`) when no refit follows."""
+    multi-start's winner left unsolved (``polish=False`` of :func:`_multistart`) when no refit follows.
+    Such a winner carries no covariance (all NaN): when its solve fails, the :class:`FitError` is raised."""
     idx = fit.inliers
     try:
         new = refine_cylinder(pts[idx], fit.cylinder, rays=rays.subset(idx), max_rounds=1)
     except FitError:
+        if not np.all(np.isfinite(fit.covariance)):
+            raise  # an unsolved winner (no covariance): nothing to return
         return fit
     return replace(
         fit,
