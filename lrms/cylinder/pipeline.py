@@ -380,7 +380,8 @@ def _without_dominant_beams(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: 
     lev = np.einsum("ij,ij->i", jac @ inv, jac)
     lev = lev[: idx.size] + lev[idx.size :]
     best = fit
-    for i in np.argsort(lev)[::-1][:3]:
+    top = np.argpartition(lev, -3)[-3:]  # the 3 of the highest leverage (a full sort: 55 ms at 700k)
+    for i in top[np.argsort(lev[top])[::-1]]:
         if lev[i] <= DOMINANT_LEVERAGE:
             break
         screened = idx.size > DOMINANT_SCREEN_MIN
