@@ -9,10 +9,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrms.cylinder.lm import LosProblem, levenberg_marquardt
-from lrms.cylinder.lm import covariance as lm_covariance
 from lrms.cylinder.model import Cylinder, Rays, _dot, perpendicular_frame
 from lrms.cylinder.options import DetectOptions
-from lrms.cylinder.refine import CylinderFit, _covariance, _Frame, hit_information
+from lrms.cylinder.refine import CylinderFit, _covariance, _Frame
 from lrms.errors import FitError
 
 FloatArray = NDArray[np.float64]
@@ -146,14 +145,21 @@ def weighted_sandwich(
 ) -> FloatArray:
     """The sandwich covariance ``A^-1 J^T V J A^-1`` of the grazing-weighted fit at ``cyl`` (in
     ``frame``): ``beams`` the problem of ``rays``, the weights at ``cyl``, ``V`` the rig's range noise."""
-    sig = grazing_sigmas(cyl, rays, sigma_lat)
-    # the two normal matrices from the normal equations (no 2N x 5 Jacobian): the weighted fit's
-    # ``A = J^T J`` (range rows over ``s_i``), and ``J^T V J`` with ``V = sigma_l^2 / s_i^2`` on
-    # the range rows, i.e. the range rows over ``s_i^2 / sigma_l``; both without the miss rows'
-    # information (:func:`~lrms.cylinder.refine.hit_information`)
-    info = hit_information(beams)
-    a_inv = lm_covariance(info.reweighted(sig).linearise(cyl, frame=frame))
-    meat = info.reweighted(np.square(sig) * plain_isl(rays)).linearise(cyl, frame=frame).normal
+    # the two normal matrices from the beams' range rows at unit weight (one pass; no 2N x 5
+    # Jacobian): the weighted fit's ``A = J^T J`` (range rows over ``s_i``) weighs them by
+    # ``1 / s_i^2``; ``J^T V J`` with ``V = sigma_l^2 / s_i^2`` on the range rows (the range rows
+    # over ``s_i^2 / sigma_l``) by ``sigma_l^2 / s_i^4``; both without the miss rows' information
+    # (:func:`~lrms.cylinder.refine.hit_information`). The weights' incidences from the exact
+    # geometry (:func:`grazing_sigmas`), not from ``frame``, which is the centre's at a node of
+    # :func:`smoothed_covariance`.
+    rows = beams.reweighted(np.ones(beams.size)).range_rows(cyl, frame=frame)
+    sl2 = np.square(np.broadcast_to(rays.sigma_l, rays.ranges.shape))
+    w = 1.0 / np.square(grazing_sigmas(cyl, rays, sigma_lat))  # 1 / s_i^2
+    try:
+        a_inv = np.linalg.inv((rows * w) @ rows.T)
+    except np.linalg.LinAlgError as exc:  # pragma: no cover - degenerate geometry
+        raise FitError("cylinder fit is degenerate (singular normal matrix)") from exc
+    meat = (rows * (sl2 * w * w)) @ rows.T
     return np.asarray(a_inv @ meat @ a_inv, dtype=np.float64)
 
 

@@ -24,6 +24,12 @@ from lrms.cylinder.model import Cylinder, Rays, perpendicular_frame
 from lrms.errors import FitError
 
 FloatArray = NDArray[np.float64]
+#: What a cost-only :meth:`LosProblem.linearise` keeps: radius, the beams in the cylinder's frame,
+#: their ranges to the model, which hit, the range and miss residuals.
+_State = tuple[
+    float, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray,
+    NDArray[np.bool_], FloatArray, FloatArray,
+]  # fmt: skip
 
 #: Convergence (see :func:`levenberg_marquardt`): the Newton decrement over ``cost / dof``, or
 #: ``STALL`` steps in a row that change the cost by less than ``FTOL`` relative (kinks of the cost).
@@ -108,6 +114,45 @@ class LosProblem:
         _, jac = self._evaluate(cyl, True, frame, dense=True)
         assert jac is not None
         return jac
+
+    def linearise_dense(
+        self, cyl: Cylinder, frame: tuple[FloatArray, FloatArray] | None = None
+    ) -> tuple[Linearised, FloatArray]:
+        """:meth:`linearise` and :meth:`jacobian` from one pass over the beams."""
+        lin, jac = self._evaluate(cyl, True, frame, dense=True)
+        assert jac is not None
+        return lin, jac
+
+    def range_rows(self, cyl: Cylinder, frame: tuple[FloatArray, FloatArray] | None = None) -> FloatArray:
+        """The range rows ``(5, N)`` of the whitened Jacobian at ``cyl`` (a beam that misses: its
+        closest approach's row, as in :meth:`jacobian`; no miss rows), without the normal matrix:
+        what a sandwich covariance with per-beam weights needs
+        (:func:`lrms.cylinder.bias.weighted_sandwich`)."""
+        lin, _ = self._evaluate(cyl, False, frame, dense=False)
+        state: _State = lin.state  # type: ignore[assignment]
+        r, v1, v2, vw, ue1, ue2, uw, aa, t, hit, _, _ = state
+        q1 = v1 + t * ue1
+        q2 = v2 + t * ue2
+        h = vw + t * uw
+        qu = q1 * ue1 + q2 * ue2
+        safe_qu = np.where(np.abs(qu) > 1e-300, qu, 1e-300)
+        f = np.where(hit, -self.isl / safe_qu, 0.0)
+        jr = np.empty((5, t.shape[0]))
+        jr[2] = q1 * f
+        jr[3] = q2 * f
+        jr[0] = h * jr[2]
+        jr[1] = h * jr[3]
+        jr[4] = r * f
+        miss = np.flatnonzero(~hit)
+        if miss.size:
+            hm, q1m, q2m, uwm = h[miss], q1[miss], q2[miss], uw[miss]
+            g = self.isl[miss] / aa[miss]
+            jr[0, miss] = -(q1m * uwm + hm * ue1[miss]) * g
+            jr[1, miss] = -(q2m * uwm + hm * ue2[miss]) * g
+            jr[2, miss] = -ue1[miss] * g
+            jr[3, miss] = -ue2[miss] * g
+            jr[4, miss] = 0.0
+        return jr
 
     def _evaluate(
         self, cyl: Cylinder, jacobian: bool, frame: tuple[FloatArray, FloatArray] | None, dense: bool

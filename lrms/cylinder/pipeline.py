@@ -15,7 +15,8 @@ from lrms import kinematics
 from lrms.covariance import NoiseModel
 from lrms.cylinder.bias import GRAZING_SIGMA, bias_corrected, grazing_weighted_fit
 from lrms.cylinder.detect import _top_height, background_planes, candidate_pool, detect_cylinder, table_height
-from lrms.cylinder.lm import LosProblem, levenberg_marquardt
+from lrms.cylinder.lm import Linearised, LosProblem, levenberg_marquardt
+from lrms.cylinder.lm import step as lm_step
 from lrms.cylinder.model import Cylinder, Rays, rays_from_points
 from lrms.cylinder.options import DetectOptions
 from lrms.cylinder.refine import INLIER_GATE, MISS_GATE, CylinderFit, refine_cylinder
@@ -169,7 +170,9 @@ def _multistart(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: DetectOption
                 best_cyl, best_cost = cyl, cost
     big, steps = MULTISTART_FULL_STEPS
     nfev = (steps if idx.size > big else 200) if polish else 0
-    return refine_cylinder(pts, best_cyl, rays=rays, max_rounds=1, max_nfev=nfev)
+    # unpolished, the winner's covariance is not computed: the refit that follows has its own
+    # (the grazing-weighted fit's, or :func:`_solved_on_inliers`'s)
+    return refine_cylinder(pts, best_cyl, rays=rays, max_rounds=1, max_nfev=nfev, covariance=polish)
 
 
 def _screened_start(prob: LosProblem, start: Cylinder, best_cost: float) -> tuple[Cylinder, float]:
@@ -190,7 +193,11 @@ def _los_fit(
     selection from ``start``, then (``multistart``) :func:`_multistart` around its solution; else
     the last solve may be on a subset of the inliers (a start for the selection by the scene
     model, which refits). ``polish``: see :func:`_multistart`."""
-    fit = refine_cylinder(pts, start, rays=rays, max_rounds=4, final_full=False, work_size=LOS_WORK)
+    # the multi-start takes only the start and inliers of this fit, and without ``polish`` a refit
+    # with its own covariance follows (the grazing-weighted fit's): the covariance is not computed
+    fit = refine_cylinder(
+        pts, start, rays=rays, max_rounds=4, final_full=False, work_size=LOS_WORK, covariance=polish and not multistart
+    )
     return _multistart(pts, rays, fit, opt, polish) if multistart else fit
 
 
@@ -358,6 +365,43 @@ DOMINANT_LEVERAGE = 0.95
 DOMINANT_COST_DROP = 25.0
 
 
+#: Inliers above which each candidate beam's refit is screened first (:func:`_predicted_whitened`):
+#: the refit of a 700k-inlier fit (1M points) took 0.8 s; below this it is a few milliseconds and
+#: always runs, so the small clouds' decisions do not depend on the screen at all.
+DOMINANT_SCREEN_MIN = 20_000
+#: Predicted whitened residual (the deleted-residual test's own measure) of the left-out beam at
+#: the refit below which the refit is not run: half of :data:`~lrms.cylinder.refine.INLIER_GATE`.
+#: The refit keeps such a beam as its inlier, so its test would refuse it anyway (1M cloud of
+#: bench_pcl, beam of leverage 0.971: 1.24 predicted, 1.35 after the full refit).
+DOMINANT_SCREEN_GATE = 0.5 * INLIER_GATE
+
+
+def _whitened(cyl: Cylinder, rays: Rays, j: int) -> float:
+    """Beam ``j``'s residual in the units of the inlier test: its range residual over ``sigma_l``,
+    or its miss distance over ``sigma_perp`` scaled to :data:`INLIER_GATE` by :data:`MISS_GATE`."""
+    t, gap = cyl.ray_range(rays.origins[j : j + 1], rays.dirs[j : j + 1])
+    return max(
+        abs(float(rays.ranges[j] - t[0])) / float(np.broadcast_to(rays.sigma_l, rays.ranges.shape)[j]),
+        float(gap[0] / rays.sigma_perp[j]) * INLIER_GATE / MISS_GATE,
+    )
+
+
+def _predicted_whitened(lin: Linearised, jac: FloatArray, cyl: Cylinder, rays: Rays, idx: IntArray, i: int) -> float:
+    """Beam ``idx[i]``'s :func:`_whitened` residual after one Gauss-Newton step from ``cyl``
+    without it: the normal equations of all inliers (``lin``, the Jacobian ``jac`` of their range
+    rows then miss rows) less the beam's two rows, a rank-2 downdate, so no pass over the other
+    beams. ``inf`` when that step cannot be taken (the refit then decides)."""
+    n = idx.size
+    rows = jac[[i, n + i]]
+    res = lin.residuals[[i, n + i]]
+    try:
+        delta = np.asarray(-np.linalg.solve(lin.normal - rows.T @ rows, lin.gradient - rows.T @ res), dtype=np.float64)
+        moved = lm_step(cyl, lin.e1, lin.e2, delta)
+    except (np.linalg.LinAlgError, FitError):
+        return float("inf")
+    return _whitened(moved, rays, int(idx[i]))
+
+
 def _without_dominant_beams(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: DetectOptions) -> CylinderFit:
     """``fit``, or its refit without an inlier beam of leverage above :data:`DOMINANT_LEVERAGE`
     when that beam is an outlier of the refit (the deleted-residual test) and the refit's cost is
@@ -369,31 +413,33 @@ def _without_dominant_beams(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: 
     separate local minimum where every inlier passes the gate (sweep 04078333 without scan 33:
     +8.25 mm, axis tilted 0.5 deg, chi2/dof 1.078 against 1.00 without that beam, which misses
     the part by 8.3 mm). At most the 3 beams of the highest leverage, each left out alone, the
-    best such refit kept; a part's own limb beam stays (it is an inlier of the fit without it)."""
+    best such refit kept; a part's own limb beam stays (it is an inlier of the fit without it).
+    Above :data:`DOMINANT_SCREEN_MIN` inliers a beam is refitted only when one Gauss-Newton step
+    without it (:func:`_predicted_whitened`) puts it at :data:`DOMINANT_SCREEN_GATE` or more."""
     if not fit.line_of_sight or fit.n_inliers <= opt.min_inliers + 5:
         return fit
     idx = fit.inliers
-    jac = LosProblem(rays.subset(idx)).jacobian(fit.cylinder)
+    lin, jac = LosProblem.of_rows(rays, idx).linearise_dense(fit.cylinder)
     try:
         inv = np.linalg.inv(jac.T @ jac)
     except np.linalg.LinAlgError:
         return fit
-    lev = np.einsum("ij,jk,ik->i", jac, inv, jac)
+    lev = np.einsum("ij,ij->i", jac @ inv, jac)
     lev = lev[: idx.size] + lev[idx.size :]
     best = fit
-    for i in np.argsort(lev)[::-1][:3]:
+    top = np.argpartition(lev, -3)[-3:]  # the 3 of the highest leverage (a full sort: 55 ms at 700k)
+    for i in top[np.argsort(lev[top])[::-1]]:
         if lev[i] <= DOMINANT_LEVERAGE:
             break
+        screened = idx.size > DOMINANT_SCREEN_MIN
+        if screened and _predicted_whitened(lin, jac, fit.cylinder, rays, idx, int(i)) < DOMINANT_SCREEN_GATE:
+            continue  # the refit keeps the beam as its inlier: its test below would refuse it
         keep = np.delete(idx, i)
         try:
             new = _los_fit(pts[keep], rays.subset(keep), fit.cylinder, opt)
         except FitError:
             continue
-        t, gap = new.cylinder.ray_range(rays.origins[idx[i] : idx[i] + 1], rays.dirs[idx[i] : idx[i] + 1])
-        whitened = max(
-            abs(float(rays.ranges[idx[i]] - t[0])) / float(np.broadcast_to(rays.sigma_l, rays.ranges.shape)[idx[i]]),
-            float(gap[0] / rays.sigma_perp[idx[i]]) * INLIER_GATE / MISS_GATE,
-        )
+        whitened = _whitened(new.cylinder, rays, int(idx[i]))
         drop = _cost(best) - _cost(new)
         if whitened >= INLIER_GATE and _radius_ok(new.cylinder, opt) and drop >= DOMINANT_COST_DROP:
             best = _reindex(new, keep, pts.shape[0])
@@ -403,11 +449,14 @@ def _without_dominant_beams(pts: FloatArray, rays: Rays, fit: CylinderFit, opt: 
 def _solved_on_inliers(pts: FloatArray, rays: Rays, fit: CylinderFit) -> CylinderFit:
     """``fit`` solved on all its inliers (one round of :func:`refine_cylinder` from its model; its
     inlier selection and covariance with it), ``fit`` itself if that solve fails. For the
-    multi-start's winner left unsolved (``polish=False`` of :func:`_multistart`) when no refit follows."""
+    multi-start's winner left unsolved (``polish=False`` of :func:`_multistart`) when no refit follows.
+    Such a winner carries no covariance (all NaN): when its solve fails, the :class:`FitError` is raised."""
     idx = fit.inliers
     try:
         new = refine_cylinder(pts[idx], fit.cylinder, rays=rays.subset(idx), max_rounds=1)
     except FitError:
+        if not np.all(np.isfinite(fit.covariance)):
+            raise  # an unsolved winner (no covariance): nothing to return
         return fit
     return replace(
         fit,

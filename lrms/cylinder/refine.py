@@ -273,6 +273,7 @@ def refine_cylinder(
     max_nfev: int = 200,
     work_size: int = 20_000,
     final_full: bool = True,
+    covariance: bool = True,
 ) -> CylinderFit:
     """Least-squares refinement from ``initial`` with inlier re-selection on ``points``.
 
@@ -285,6 +286,8 @@ def refine_cylinder(
     model. Without: the orthogonal-distance fit with isotropic ``sigma`` (m); ``sigma=None``
     estimates it from the residuals (the covariance is then scaled by the posterior variance).
     Each solve is :func:`lrms.cylinder.lm.levenberg_marquardt` with at most ``max_nfev`` steps.
+    ``covariance=False``: the fit's covariance is not computed (all NaN; no Jacobian on the
+    inliers) for a fit that only starts further work (the multi-start's start and inliers).
     """
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
@@ -372,15 +375,15 @@ def refine_cylinder(
         cyl = solve_on(idx, cyl)
 
     prob = problem(idx)
-    lin = prob.linearise(cyl)
+    lin = prob.linearise(cyl, jacobian=covariance)
     dof = max(idx.size - 5, 1)
     chi2_dof = float(lin.cost / dof)
     info = lin
     if isinstance(prob, LosProblem) and np.any(lin.residuals[idx.size :] != 0):
         # a line-of-sight fit with beams that miss the model: its information without their miss
         # rows (:func:`hit_information`)
-        info = hit_information(prob).linearise(cyl, frame=(lin.e1, lin.e2))
-    cov = lm_covariance(info)
+        info = hit_information(prob).linearise(cyl, frame=(lin.e1, lin.e2)) if covariance else lin
+    cov = lm_covariance(info) if covariance else np.full((5, 5), np.nan)
     scale = 1.0
     if use_los:
         assert rays is not None

@@ -70,7 +70,14 @@ def test_a_missed_wall_does_not_give_a_room_sized_cylinder() -> None:
     assert np.mean(on_part) > 0.95
 
 
-def test_a_clutter_beam_that_holds_the_model_is_left_out() -> None:
+@pytest.mark.parametrize("screen_min", [None, 0])
+def test_a_clutter_beam_that_holds_the_model_is_left_out(
+    screen_min: int | None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Also with the large clouds' screen (``screen_min = 0``: one Gauss-Newton step without the
+    beam predicts its residual at the refit) applied to this small one: it must not skip the refit."""
+    if screen_min is not None:
+        monkeypatch.setattr(pipeline, "DOMINANT_SCREEN_MIN", screen_min)
     pts, rays = _cloud(BAND)
     # the local minimum through the clutter beam: the line-of-sight fit on all the band's beams
     start = Cylinder(np.array([0.2817, 2.5353, 0.2202]), np.array([-0.0082, 0.0024, 1.0]), 0.0732)
