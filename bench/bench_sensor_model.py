@@ -27,9 +27,10 @@ the spread (std, mm), the mean GUM standard uncertainty the fit reports, and the
 whose d +- 2 u covers the truth.
 
 ``--fit footprint`` fits the same clouds with the beam-footprint model (``fit_cylinder(...,
-optics=BeamOptics())``: LMS1xx spot, edge family and threshold estimated, not told) and a nominal
-diameter (+-10 %); its u is the fit's with the edge-model rows (``extra["edge_model_u_m"]``, the
-spot size, and ``extra["edge_family_u_m"]``, the model choice) in quadrature. ``--fit both`` prints
+optics=BeamOptics())``: LMS1xx spot, edge family, threshold and spot scale estimated, not told)
+and a nominal diameter (+-10 %); its u is the fit's with the edge-model rows (``extra["edge_model_u_m"]``,
+the spot size, 0 unless ``--hold-spot`` holds the spot at its nominal size, and
+``extra["edge_family_u_m"]``, the model choice) in quadrature. ``--fit both`` prints
 both fits per case, on the same clouds.
 
 For a long unattended run (the >= 400-sweep coverage check of issue 11): ``--progress N`` prints a
@@ -84,6 +85,8 @@ FOOTPRINT = Footprint()
 EDGE_FAMILY = [(thr, mode) for thr in (0.1, 0.3, 0.5) for mode in ("weighted", "first")]
 OFFSET_ROW = True
 IDEAL_ROW = True
+#: The footprint fit's optics (``--hold-spot``: the spot held at its nominal size, its 15 % carried as a row).
+OPTICS = BeamOptics()
 PROGRESS = 0
 #: Echo formation of the roi cloud on the beams that meet the ROI box alone (``--all-beams``: off).
 ROI_BEAMS = True
@@ -236,7 +239,7 @@ def run_case(g: Geometry, draw: Draw, sweeps: int, cloud: str, seed: int, fits: 
                         pts,
                         noise=noise,
                         rng=np.random.default_rng(fit_seed),
-                        optics=BeamOptics(),
+                        optics=OPTICS,
                         diameter_range=nominal_diameter_range(g.diameter),
                     )
             except LrmsError as ex:
@@ -333,13 +336,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--no-offset", action="store_true", help="leave out the +15 mm range offset row")
     parser.add_argument("--parts", default=None, help="comma list of D:R (m) for --only parts (default: all six)")
     parser.add_argument("--no-ideal", action="store_true", help="leave out the ideal thin-beam rows")
+    parser.add_argument(
+        "--hold-spot", action="store_true", help="footprint fit: hold the spot at its nominal size (before round 7)"
+    )
     parser.add_argument("--progress", type=int, default=0, help="print a line every N sweeps of a case")
     parser.add_argument(
         "--all-beams", action="store_true", help="form the roi cloud's echoes on every beam (slower, same clouds)"
     )
     parser.add_argument("--cache", default=None, help="directory keeping each scene's ray cast between runs")
     args = parser.parse_args(argv)
-    global FOOTPRINT, OFFSET_ROW, IDEAL_ROW, PROGRESS, ROI_BEAMS
+    global FOOTPRINT, OFFSET_ROW, IDEAL_ROW, PROGRESS, ROI_BEAMS, OPTICS
+    OPTICS = BeamOptics(fit_spot=not args.hold_spot)
     ROI_BEAMS = not args.all_beams
     FOOTPRINT = Footprint(sub_rays=args.sub_rays)
     OFFSET_ROW = not args.no_offset
