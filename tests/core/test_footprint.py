@@ -227,6 +227,11 @@ def test_cli_nominal_diameter_and_optics(tmp_path: Path, capsys: pytest.CaptureF
     assert fp["footprint"]["edge_mode"] in ("first", "weighted", "thin")
     assert fp["footprint"]["thin_beam_diameter_m"] == pytest.approx(thin["diameter_m"], abs=2e-3)
     assert abs(fp["diameter_m"] - SEED003_DIAMETER) < 0.015
+    # a footprint family won: the spot's scale was estimated, and its row is in the type A
+    won = fp["footprint"]["edge_mode"] != "thin"
+    assert (fp["footprint"]["spot_scale"] is not None) == won
+    assert won or fp["footprint"]["spot_scale_u"] is None
+    assert not won or (fp["footprint"]["spot_scale_u"] > 0 and fp["footprint"]["edge_model_u_m"] == 0.0)
 
 
 @pytest.mark.parametrize(("threshold", "mode"), [(0.1, "first"), (0.3, "first"), (0.5, "first"), (0.3, "weighted")])
