@@ -29,9 +29,10 @@ diameter (mm) +- its standard error, the spread (std, mm), the mean GUM standard
 fit reports, and the share of sweeps whose d +- 2 u covers the truth.
 
 ``--fit footprint`` fits the same clouds with the beam-footprint model (``fit_cylinder(...,
-optics=BeamOptics())``: LMS1xx spot, edge family and threshold estimated, not told) and a nominal
-diameter (+-10 %); its u is the fit's with the edge-model rows (``extra["edge_model_u_m"]``, the
-spot size, and ``extra["edge_family_u_m"]``, the model choice) in quadrature. ``--fit both`` prints
+optics=BeamOptics())``: LMS1xx spot, edge family, threshold and spot scale estimated, not told)
+and a nominal diameter (+-10 %); its u is the fit's with the edge-model rows (``extra["edge_model_u_m"]``,
+the spot size, 0 unless ``--hold-spot`` holds the spot at its nominal size, and
+``extra["edge_family_u_m"]``, the model choice) in quadrature. ``--fit both`` prints
 both fits per case, on the same clouds.
 
 For a long unattended run (the >= 400-sweep coverage check of issue 11): ``--progress N`` prints a
@@ -86,6 +87,8 @@ FOOTPRINT = Footprint()
 EDGE_FAMILY = [(thr, mode) for thr in (0.1, 0.3, 0.5) for mode in ("weighted", "first")]
 OFFSET_ROW = True
 IDEAL_ROW = True
+#: The footprint fit's optics (``--hold-spot``: the spot held at its nominal size, its 15 % carried as a row).
+OPTICS = BeamOptics()
 PROGRESS = 0
 #: Sweep indices (in the case's random stream) to fit (``--sweep-list``); None: every sweep.
 SWEEP_LIST: set[int] | None = None
@@ -251,7 +254,7 @@ def run_case(g: Geometry, draw: Draw, sweeps: int, cloud: str, seed: int, fits: 
                         pts,
                         noise=noise,
                         rng=np.random.default_rng(fit_seed),
-                        optics=BeamOptics(),
+                        optics=OPTICS,
                         diameter_range=nominal_diameter_range(g.diameter),
                     )
             except LrmsError as ex:
@@ -355,6 +358,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--no-offset", action="store_true", help="leave out the +15 mm range offset row")
     parser.add_argument("--parts", default=None, help="comma list of D:R (m) for --only parts (default: all six)")
     parser.add_argument("--no-ideal", action="store_true", help="leave out the ideal thin-beam rows")
+    parser.add_argument(
+        "--hold-spot", action="store_true", help="footprint fit: hold the spot at its nominal size (before round 7)"
+    )
     parser.add_argument("--progress", type=int, default=0, help="print a line every N sweeps of a case")
     parser.add_argument(
         "--all-beams", action="store_true", help="form the roi cloud's echoes on every beam (slower, same clouds)"
@@ -365,9 +371,10 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--dump", default=None, help="directory to save each fitted sweep's cloud (npz) in")
     args = parser.parse_args(argv)
-    global FOOTPRINT, OFFSET_ROW, IDEAL_ROW, PROGRESS, ROI_BEAMS, SWEEP_LIST, DUMP
+    global FOOTPRINT, OFFSET_ROW, IDEAL_ROW, PROGRESS, ROI_BEAMS, SWEEP_LIST, DUMP, OPTICS
     SWEEP_LIST = None if args.sweep_list is None else {int(i) for i in args.sweep_list.split(",") if i}
     DUMP = None if args.dump is None else Path(args.dump)
+    OPTICS = BeamOptics(fit_spot=not args.hold_spot)
     ROI_BEAMS = not args.all_beams
     FOOTPRINT = Footprint(sub_rays=args.sub_rays)
     OFFSET_ROW = not args.no_offset

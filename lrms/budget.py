@@ -27,7 +27,8 @@ independently per beam (the noise of alpha and beta beyond the fit's range-only 
 ``c = sqrt(sum_i c_i^2)``; an input drawn once per scan (motor timing jitter, encoder
 quantisation: every beam of a scan shares its beta) gives ``c = sqrt(sum_scans (sum_(i in scan)
 c_i)^2)``. The fit's own row (type A) is its covariance's ``u(d)``. Rows given as a diameter
-contribution (the footprint / edge model's ``fit.extra["edge_model_u_m"]``, the edge family's
+contribution (the footprint / edge model's ``fit.extra["edge_model_u_m"]``: 0 when the footprint
+fit estimated the spot's size, whose uncertainty is then in the fit's row; the edge family's
 ``fit.extra["edge_family_u_m"]`` (model choice, Akaike-weighted spread), a calibration's
 covariance through :class:`CalibrationInput`, ``extra_rows``) enter as they are.
 """
@@ -464,6 +465,19 @@ def _edge_row(fit: CylinderFit) -> BudgetRow:
             "this fit has no edge model (thin-beam model): under a real LMS1xx's footprint it is biased by "
             "tens of mm, which no row here covers (docs/sensor-model.md)",
         )
+    scale = fit.extra.get("edge_spot_scale")
+    if scale is not None:
+        # estimated by the fit: its uncertainty is in the fit's covariance, not carried again here
+        return BudgetRow.of(
+            "footprint / edge model",
+            "B",
+            float(u),
+            "m",
+            1.0,
+            "normal",
+            f"the spot's size estimated by the fit, {float(scale):.3f} +- {float(fit.extra['edge_spot_scale_u']):.3f}"
+            " x the nominal (the nominal a prior): in the fit's type A row, 0 here (fit.extra['edge_model_u_m'])",
+        )
     return BudgetRow.of(
         "footprint / edge model",
         "B",
@@ -471,7 +485,7 @@ def _edge_row(fit: CylinderFit) -> BudgetRow:
         "m",
         1.0,
         "normal",
-        "the fit's edge parameter carried with its uncertainty (fit.extra['edge_model_u_m'])",
+        "the spot's size held at its nominal value, carried with its uncertainty (fit.extra['edge_model_u_m'])",
     )
 
 

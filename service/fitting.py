@@ -278,6 +278,9 @@ def _footprint_json(extra: dict[str, float]) -> dict[str, Any]:
         "edge_mode": {1.0: "first", 0.0: "weighted"}.get(code, "thin"),
         "edge_threshold": float(tau) if np.isfinite(tau) else None,
         "edge_model_u_m": float(extra.get("edge_model_u_m", 0.0)),
+        # the spot's scale (x the nominal) and its u when the fit estimated it (then edge_model_u_m is 0)
+        "spot_scale": extra.get("edge_spot_scale"),
+        "spot_scale_u": extra.get("edge_spot_scale_u"),
         # the model choice's row (Akaike-weighted spread of the families' diameters) and the weights
         "edge_family_u_m": float(extra.get("edge_family_u_m", 0.0)),
         "akaike_weights": {

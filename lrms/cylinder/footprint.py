@@ -108,8 +108,12 @@ class BeamOptics:
     light ends at ``extent`` nominal spot radii (1.5: three sigmas at profile_sigma 0.25; a real
     spot is cut by the optics' apertures, and a Gaussian without an end is no better a reading of
     SICK's figures): the energy-weighted family integrates the profile of that disc
-    (:func:`disc_marginal_cdf`; the first-hit family keeps the untruncated Gaussian). Bad values:
-    :class:`FitError`.
+    (:func:`disc_marginal_cdf`; the first-hit family keeps the untruncated Gaussian). ``fit_spot``
+    (default on, with ``spot_scale_u > 0``): the spot's scale is estimated by the fit, the nominal
+    (or calibrated) size entering as a prior observation ``log(scale) / spot_scale_u`` (a residual
+    row), so the fit's type A holds the spot's uncertainty and ``edge_model_u_m`` is 0; off (or
+    ``spot_scale_u = 0``): the spot is held at its nominal size and ``spot_scale_u`` carried as the
+    ``edge_model_u_m`` row. Bad values: :class:`FitError`.
     """
 
     exit_diameter_m: float = LMS1XX_EXIT_DIAMETER
@@ -118,6 +122,7 @@ class BeamOptics:
     spot_scale_u: float = 0.15
     share_u: float = 0.0
     extent: float = 1.5
+    fit_spot: bool = True
 
     def __post_init__(self) -> None:
         for name, lo, hi in (
@@ -133,6 +138,13 @@ class BeamOptics:
                 raise FitError(f"beam optics: {name} must be within [{lo}, {hi}], got {v!r}")
         if self.exit_diameter_m == 0.0 and self.divergence_rad == 0.0:
             raise FitError("beam optics: a spot of zero size is the thin beam (use no optics)")
+        if not isinstance(self.fit_spot, bool):
+            raise FitError(f"beam optics: fit_spot must be a bool, got {self.fit_spot!r}")
+
+    @property
+    def spot_free(self) -> bool:
+        """Whether the footprint fit estimates the spot's scale (``fit_spot`` with a prior width)."""
+        return self.fit_spot and self.spot_scale_u > 0.0
 
     def sigma(self, range_m: FloatArray | float) -> FloatArray:
         """The spot profile's standard deviation (m) at ``range_m``."""
@@ -286,6 +298,24 @@ class _Solved:
     nfev: int = 0
 
 
+def _spot_index(mode: EdgeMode) -> int:
+    """Index of the spot's log scale in a family's parameters (after the threshold's logit)."""
+    return 5 if mode == "weighted" else 6
+
+
+def _fit_scale(theta: FloatArray, mode: EdgeMode) -> float:
+    """The spot scale ``theta`` holds (1 when the spot is held at its nominal size)."""
+    k = _spot_index(mode)
+    return float(np.exp(theta[k])) if theta.size > k else 1.0
+
+
+def _start(mode: EdgeMode, optics: BeamOptics, tau: float = 0.3, radius: float = 0.0) -> FloatArray:
+    """A family's start: the thin beam's cylinder (``radius`` added), ``logit(tau)`` for a first
+    hit, the nominal spot (log scale 0) when the fit estimates it."""
+    head = [0.0, 0.0, 0.0, 0.0, radius] + ([float(logit(tau))] if mode == "first" else [])
+    return np.array(head + ([0.0] if optics.spot_free else []), dtype=np.float64)
+
+
 def _first_rows(
     g: _Geom, big_t: FloatArray, slope: FloatArray, tau: float, rays: Rays, optics: BeamOptics
 ) -> FloatArray:
@@ -327,20 +357,24 @@ def _residuals(
     warm: _Warm | None = None,
 ) -> FloatArray:
     a, w, r = frame.unpack(theta[:5])
+    k = _spot_index(mode)
+    # the spot's estimated scale and its prior row (the nominal size, u = spot_scale_u in log)
+    prior = [np.array([theta[k] / optics.spot_scale_u])] if theta.size > k else []
+    spot = scale * _fit_scale(theta, mode)
     if mode == "weighted":
-        pred, _, _ = _echo(a, w, float(r), rays, optics, mode, 0.0, scale)
-        return np.asarray((rays.ranges - pred) / rays.sigma_l, dtype=np.float64)
+        pred, _, _ = _echo(a, w, float(r), rays, optics, mode, 0.0, spot)
+        return np.asarray(np.concatenate([(rays.ranges - pred) / rays.sigma_l, *prior]), dtype=np.float64)
     tau = float(expit(theta[5]))
-    g = _geometry(a, w, float(r), rays, optics, scale)
+    g = _geometry(a, w, float(r), rays, optics, spot)
     if warm is not None and scale == 1.0:
         big_t, slope = warm.solve(theta, g, tau)
     else:
         big_t, slope = first_hit_range(g.x0, g.t_ca, g.cos_axis, g.radius, g.s0, g.sd, tau, g.c)
-    return _first_rows(g, big_t, slope, tau, rays, optics)
+    return np.asarray(np.concatenate([_first_rows(g, big_t, slope, tau, rays, optics), *prior]), dtype=np.float64)
 
 
-#: Steps of the first-hit Jacobian's differences: the geometry (m, rad) and logit(tau).
-_JAC_STEP = np.array([1e-6, 1e-6, 1e-6, 1e-6, 1e-6, 1e-4])
+#: Steps of the first-hit Jacobian's differences: the geometry (m, rad), logit(tau), log(spot scale).
+_JAC_STEP = np.array([1e-6, 1e-6, 1e-6, 1e-6, 1e-6, 1e-4, 1e-4])
 
 
 def _first_jacobian(
@@ -359,7 +393,8 @@ def _first_jacobian(
     """
     a, w, r = frame.unpack(theta[:5])
     tau = float(expit(theta[5]))
-    g = _geometry(a, w, float(r), rays, optics, 1.0)
+    spot = _fit_scale(theta, "first")
+    g = _geometry(a, w, float(r), rays, optics, spot)
     big_t, slope = (warm or _Warm()).solve(theta, g, tau)
     f0, fp0, grad, near_mask = _first_share_grad(big_t, g.x0, g.t_ca, g.cos_axis, g.radius, g.s0, g.sd)
     target0 = np.minimum(tau, 0.999 * g.c)
@@ -367,14 +402,14 @@ def _first_jacobian(
     flat = np.flatnonzero(fp0 < 1.0)  # F flat at T (a spot that barely meets the part): re-solved
     fp0 = np.maximum(fp0, 1.0)
     r0 = _first_rows(g, big_t, slope, tau, rays, optics)
-    jac = np.empty((r0.size, theta.size))
+    jac = np.empty((r0.size, 6))
     cols = []
-    for j in range(theta.size):
+    for j in range(6):
         th = theta.copy()
         th[j] += _JAC_STEP[j]
         aj, wj, rj = frame.unpack(th[:5])
         tj = float(expit(th[5]))
-        gj = _geometry(aj, wj, float(rj), rays, optics, 1.0) if j < 5 else g
+        gj = _geometry(aj, wj, float(rj), rays, optics, spot) if j < 5 else g
         # F's change at T0 to first order in the geometry's (the steps are 1e-6)
         df = (
             grad[:, 0] * (gj.x0 - g.x0)
@@ -405,7 +440,16 @@ def _first_jacobian(
             _, fpj = _first_share(tt, gj.x0, gj.t_ca, gj.cos_axis, gj.radius, gj.s0, gj.sd)
             sj = 1.0 / np.maximum(fpj, 1.0)
         jac[:, j] = (_first_rows(gj, tt, sj, tj, rays, optics) - r0) / _JAC_STEP[j]
-    return jac
+    if theta.size == 6:
+        return jac
+    # the spot's scale: a plain forward difference (one Newton solve), and the prior row
+    th = theta.copy()
+    th[6] += _JAC_STEP[6]
+    full = np.zeros((r0.size + 1, 7))
+    full[: r0.size, :6] = jac
+    base = np.append(r0, theta[6] / optics.spot_scale_u)
+    full[:, 6] = (_residuals(th, frame, rays, optics, "first") - base) / _JAC_STEP[6]
+    return full
 
 
 def _solve(frame: _Frame, rays: Rays, optics: BeamOptics, mode: EdgeMode, start: FloatArray) -> _Solved:
@@ -414,8 +458,7 @@ def _solve(frame: _Frame, rays: Rays, optics: BeamOptics, mode: EdgeMode, start:
     # the footprint makes the thin-beam fit too large by up to a spot diameter, never smaller by
     # more than a fraction of one: bounds keep a flat likelihood from wandering off
     spot = float(2.0 / optics.profile_sigma * optics.sigma(float(np.linalg.norm(frame.a))))
-    lo = np.array([-0.05, -0.05, -spot, -spot, -spot, -8.0][: start.size])
-    hi = np.array([0.05, 0.05, spot, spot, 0.25 * spot, 8.0][: start.size])
+    lo, hi, x_scale = _box(mode, spot, start.size)
     jac: object = "2-point"
     warm = _Warm() if mode == "first" else None
     if mode == "first" and _JACOBIAN == "implicit":
@@ -426,7 +469,7 @@ def _solve(frame: _Frame, rays: Rays, optics: BeamOptics, mode: EdgeMode, start:
         jac=jac,
         bounds=(lo, hi),
         method="trf",
-        x_scale=np.array([1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 0.3][: start.size]),
+        x_scale=x_scale,
         diff_step=np.full(start.size, 1e-5),
         ftol=_FTOL,
         max_nfev=60 * start.size,
@@ -435,6 +478,27 @@ def _solve(frame: _Frame, rays: Rays, optics: BeamOptics, mode: EdgeMode, start:
         raise FitError("footprint fit diverged")
     tau = float(expit(out.x[5])) if mode == "first" else float("nan")
     return _Solved(mode, np.asarray(out.x), tau, float(2.0 * out.cost), np.asarray(out.jac), start.size, rays, out.nfev)
+
+
+#: Bounds of the spot's log scale: half to twice the nominal size.
+SPOT_LOG_BOUND = float(np.log(2.0))
+
+
+def _box(mode: EdgeMode, spot: float, size: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Bounds and ``x_scale`` of a family's ``size`` parameters (``spot``: the nominal spot
+    diameter at the part): the axis (rad, m), the radius's change, logit(tau), log(spot scale)."""
+    tau = [(-8.0, 8.0, 0.3)] if mode == "first" else []
+    cols = [
+        (-0.05, 0.05, 1e-3),
+        (-0.05, 0.05, 1e-3),
+        (-spot, spot, 1e-3),
+        (-spot, spot, 1e-3),
+        (-spot, 0.25 * spot, 1e-3),
+        *tau,
+        (-SPOT_LOG_BOUND, SPOT_LOG_BOUND, 0.05),
+    ][:size]
+    lo, hi, xs = (np.array(c, dtype=np.float64) for c in zip(*cols, strict=True))
+    return lo, hi, xs
 
 
 #: The first-hit family's Jacobian: "implicit" (:func:`_first_jacobian`) or "2-point" (plain
@@ -474,7 +538,9 @@ def footprint_fit(
     :func:`_profile_interval`, whose ends ``footprint_profile_lo_m`` / ``footprint_profile_hi_m``
     and lowest point ``footprint_profile_lowest_m``, diameter offsets, are in ``extra``; energy-weighted:
     the curvature at +-1 mm, :func:`_profile_variance`), and whose ``extra`` holds
-    ``edge_model_u_m`` (the budget row of the spot size, not estimated), ``edge_family_u_m`` (the
+    ``edge_model_u_m`` (the budget row of the spot size when it is held at its nominal size; 0 when
+    the fit estimates it, ``BeamOptics.fit_spot``: then ``edge_spot_scale`` and its standard
+    uncertainty ``edge_spot_scale_u``, in the covariance), ``edge_family_u_m`` (the
     budget row of the model choice, :func:`family_spread`; ``akaike_weight_*`` its weights),
     ``edge_mode_first`` (1 first hit, 0 energy-weighted, -1 the thin beam won), ``edge_threshold``
     (the fitted tau, first hit only), ``edge_spot_sensitivity_m`` (d diameter / d relative spot
@@ -497,7 +563,7 @@ def footprint_fit(
     # the families are first fitted on a subsample of the work beams; only those the subsample
     # leaves plausible (AIC within MODE_DECISIVE of the best, the thin beam included) are refined
     # on all of them, from the subsample's solution
-    starts = {m: (np.zeros(5) if m == "weighted" else np.array([0, 0, 0, 0, 0, float(logit(0.3))])) for m in modes}
+    starts = {m: _start(m, optics) for m in modes}
     plausible = list(modes)
     dropped: list[_Solved] = []
     if work.ranges.size > 2 * decide_size and len(modes) > 1:
@@ -573,7 +639,19 @@ def footprint_fit(
     res_hi = _residuals(best.theta, frame, best.rays, optics, best.mode, scale=1.01)
     dtheta = -jtj_inv @ (jac.T @ ((res_hi - res_lo) / 0.02))
     spot_sens = float(2.0 * dtheta[4])
-    u_spot = abs(spot_sens) * optics.spot_scale_u
+    # a spot held at its nominal size: its uncertainty carried by the sensitivity (the budget's
+    # edge row); an estimated spot: in the covariance (type A), the row is 0
+    k_spot = _spot_index(best.mode)
+    free = best.theta.size > k_spot
+    u_spot = 0.0 if free else abs(spot_sens) * optics.spot_scale_u
+    spot_extra = (
+        {
+            "edge_spot_scale": _fit_scale(best.theta, best.mode),
+            "edge_spot_scale_u": float(np.sqrt(max(cov_full[k_spot, k_spot], 0.0))) * _fit_scale(best.theta, best.mode),
+        }
+        if free
+        else {}
+    )
     # Box's second-order bias of the chosen family's solution, subtracted (its own module)
     from lrms.cylinder.footprint_bias import corrected
 
@@ -600,6 +678,7 @@ def footprint_fit(
             "edge_threshold": best.tau if best.mode == "first" else float("nan"),
             "edge_spot_sensitivity_m": spot_sens,
             "edge_model_u_m": float(u_spot),
+            **spot_extra,
             "footprint_beams": float(n_res),
             "footprint_u_jtj_m": float(2.0 * np.sqrt(max(var_jtj, 0.0))),
             "footprint_u_profile_m": float(2.0 * np.sqrt(max(var_prof, 0.0))),
@@ -644,7 +723,7 @@ def _first_starts(frame: _Frame, optics: BeamOptics, own: FloatArray | None) -> 
     sigma = float(optics.sigma(float(np.linalg.norm(frame.a))))
     out = [] if own is None else [np.asarray(own, dtype=np.float64)]
     for tau in FIRST_STARTS:
-        out.append(np.array([0, 0, 0, 0, -sigma * float(ndtri(1.0 - tau)), float(logit(tau))]))
+        out.append(_start("first", optics, tau, -sigma * float(ndtri(1.0 - tau))))
     return out
 
 
@@ -756,7 +835,7 @@ def _held(
         start,
         jac=jac,
         method="trf",
-        x_scale=np.array([1e-3, 1e-3, 1e-3, 1e-3, 0.3][: len(idx)]),
+        x_scale=np.delete(_box(best.mode, 1.0, best.theta.size)[2], 4),
         diff_step=np.full(len(idx), 1e-5),
         ftol=_FTOL,
         max_nfev=max_nfev,

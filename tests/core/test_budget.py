@@ -176,8 +176,16 @@ def test_temperature_edge_model_and_extra_rows(sweep_fit: tuple[CylinderFit, np.
     assert t.u_x == 4.0 and t.unit == "K"
     assert t.c == pytest.approx(0.5e-3 * b.row("range offset").c)
     assert b.row("footprint / edge model").u_m == pytest.approx(0.4e-3)
+    assert "held at its nominal value" in b.row("footprint / edge model").note
     assert b.row("ovality").u_m == pytest.approx(0.3e-3)
     assert b.diameter_u_beyond(BEAM_SOURCES) == pytest.approx(float(np.hypot(0.4e-3, 0.3e-3)))
+    # a spot size the footprint fit estimated: its uncertainty is in the fit's row, not carried again
+    spot = {"edge_model_u_m": 0.0, "edge_spot_scale": 1.02, "edge_spot_scale_u": 0.04}
+    spot_fit = dataclasses.replace(fit, extra={**fit.extra, **spot})
+    row = cylinder_budget(spot_fit, rays.subset(fit.inliers), beams.subset(fit.inliers), noise=NM).row(
+        "footprint / edge model"
+    )
+    assert row.u_m == 0.0 and "1.020 +- 0.040" in row.note and "type A" in row.note
 
 
 def test_calibration_row_keeps_correlations_and_replaces_the_uncalibrated_rows(

@@ -112,10 +112,11 @@ def test_expected_echo_of_a_half_covered_spot_and_of_a_spot_on_the_front() -> No
     assert tf[0] - 2.4 == pytest.approx(0.455 * sigma**2 / (2 * cyl.radius), abs=2e-4)
 
 
-def footprint_sweep(threshold: float, mode: EdgeMode, seed: int) -> np.ndarray:
-    sensor = LMS1xxSensor(
-        footprint=Footprint(sub_rays=32), edge_threshold=threshold, range_mode=mode, sigma_alpha=0.0, sigma_beta=0.0
-    )
+def footprint_sweep(threshold: float, mode: EdgeMode, seed: int, spot: float = 1.0) -> np.ndarray:
+    """A sweep of seed 003's bare part under the LMS1xx footprint; ``spot`` scales the device's spot."""
+    fp = Footprint(sub_rays=32)
+    fp = Footprint(sub_rays=32, exit_diameter_m=spot * fp.exit_diameter_m, divergence_rad=spot * fp.divergence_rad)
+    sensor = LMS1xxSensor(footprint=fp, edge_threshold=threshold, range_mode=mode, sigma_alpha=0.0, sigma_beta=0.0)
     cal = RigCalibration()
     dev = np.deg2rad(np.arange(60.0, 120.0 + 1e-9, 0.25))
     mot = np.deg2rad(np.arange(-20.0, 70.0, 0.4))[:, None]
@@ -152,9 +153,35 @@ def test_the_footprint_fit_removes_most_of_the_thin_beams_bias() -> None:
     assert fit.extra["footprint_profile_scale"] == pytest.approx(max(1.0, (u_prof / u_jtj) ** 2), rel=1e-6)
 
 
+def test_a_device_whose_spot_is_not_the_nominal_one_is_estimated_not_assumed() -> None:
+    """A device whose spot is 1.2 x SICK's figure (energy-weighted, 30 %): the fit estimates the
+    spot's scale (the nominal size a prior of 15 %) and its diameter is within 2 u of the truth with
+    no spot row left in the budget; held at the nominal size, the spot's row is what has to cover it."""
+    pts = footprint_sweep(0.3, "weighted", 8, spot=1.2)
+    rng = np.random.default_rng(0)
+    fit = fit_cylinder(pts, rng=rng, optics=BeamOptics(), diameter_range=nominal_diameter_range(SEED003_DIAMETER))
+    assert fit.extra["edge_mode_first"] == 0.0
+    s, us = fit.extra["edge_spot_scale"], fit.extra["edge_spot_scale_u"]
+    assert 0.0 < us < 0.15  # the data pin the spot closer than the prior
+    assert abs(s - 1.2) < 3 * us  # measured 1.117 +- 0.045 (the prior pulls toward 1)
+    assert fit.extra["edge_model_u_m"] == 0.0
+    assert abs(fit.diameter - SEED003_DIAMETER) < 2 * fit.std_diameter
+    held = fit_cylinder(
+        pts,
+        rng=np.random.default_rng(0),
+        optics=BeamOptics(fit_spot=False),
+        diameter_range=nominal_diameter_range(SEED003_DIAMETER),
+    )
+    assert "edge_spot_scale" not in held.extra
+    assert held.extra["edge_model_u_m"] > 0.0
+    assert held.std_diameter < fit.std_diameter  # the spot's share moved from type A to its own row
+
+
 def test_bad_optics_and_nominal_diameters_are_clear_errors() -> None:
     with pytest.raises(FitError, match="divergence_rad"):
         BeamOptics(divergence_rad=-0.001)
+    with pytest.raises(FitError, match="fit_spot"):
+        BeamOptics(fit_spot=1)  # type: ignore[arg-type]
     with pytest.raises(FitError, match="extent"):
         BeamOptics(extent=0.0)
     with pytest.raises(FitError, match="extent"):
@@ -200,6 +227,11 @@ def test_cli_nominal_diameter_and_optics(tmp_path: Path, capsys: pytest.CaptureF
     assert fp["footprint"]["edge_mode"] in ("first", "weighted", "thin")
     assert fp["footprint"]["thin_beam_diameter_m"] == pytest.approx(thin["diameter_m"], abs=2e-3)
     assert abs(fp["diameter_m"] - SEED003_DIAMETER) < 0.015
+    # a footprint family won: the spot's scale was estimated, and its row is in the type A
+    won = fp["footprint"]["edge_mode"] != "thin"
+    assert (fp["footprint"]["spot_scale"] is not None) == won
+    assert won or fp["footprint"]["spot_scale_u"] is None
+    assert not won or (fp["footprint"]["spot_scale_u"] > 0 and fp["footprint"]["edge_model_u_m"] == 0.0)
 
 
 @pytest.mark.parametrize(("threshold", "mode"), [(0.1, "first"), (0.3, "first"), (0.5, "first"), (0.3, "weighted")])
@@ -241,10 +273,12 @@ def test_the_forward_model_matches_the_simulators_echoes_beam_by_beam(threshold:
     assert np.all(np.abs(c[centre_on] - 0.5) <= 0.5)
 
 
-def test_the_first_hit_jacobian_matches_differences_through_the_newton_solve() -> None:
+@pytest.mark.parametrize("spot_free", [False, True])
+def test_the_first_hit_jacobian_matches_differences_through_the_newton_solve(spot_free: bool) -> None:
     """The implicit-step Jacobian of the first-hit rows (share_u on: widened sigmas) against plain
     central differences of the residuals, each of which re-solves F(T) = target, on every beam of
-    a noiseless first-hit cloud (table and part) near (not at) the solution."""
+    a noiseless first-hit cloud (table and part) near (not at) the solution; with the spot's scale
+    a parameter too (its column and its prior row)."""
     from scipy.optimize._numdiff import approx_derivative
     from scipy.special import logit
 
@@ -255,7 +289,9 @@ def test_the_first_hit_jacobian_matches_differences_through_the_newton_solve() -
     rays = rays_from_points(scene_pts)
     frame = _Frame.at(TRUTH.with_point_near(scene_pts.mean(axis=0)))
     optics = BeamOptics(share_u=0.03)
-    theta = np.array([2e-4, -3e-4, 1e-3, -5e-4, 8e-4, float(logit(0.27))])
+    # spot 1.2 x nominal (at 1.1 one beam of this cloud, whose F is just steeper than the flat cut
+    # of 1 per metre, gets a row 47x off in the radius's column: the implicit step's known limit)
+    theta = np.array([2e-4, -3e-4, 1e-3, -5e-4, 8e-4, float(logit(0.27))] + ([float(np.log(1.2))] if spot_free else []))
     jac = _first_jacobian(theta, frame, rays, optics)
     ref = approx_derivative(
         lambda th: _residuals(th, frame, rays, optics, "first"), theta, method="3-point", rel_step=1e-6
