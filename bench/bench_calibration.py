@@ -34,6 +34,13 @@ Artefact layouts (``--layout``; docs/calibration.md, "What limits k1 and the mot
   its own poses (:data:`sim.scene.library.HALL_AXIS_POSES`). For k1 (docs/calibration.md, "The
   hall layout").
 
+``--speed``: the sweeps' motor speed, 10 deg/s for ``hall`` (twice the sphere beams of 20: k1's std
+11.5 ppm instead of 15.6; docs/calibration.md, "The hall layout: what limits k1"), 20 otherwise.
+``--k1-budget``: k1's standard deviation from the final normal matrix, as is and with each group of
+observations (a sphere's beams in one sweep, all sphere beams, all plane beams) counted twice and
+the diameters' / distances' uncertainties halved or 100x: which data would shrink it.
+``--start N``: begin at run N (the rigs of runs 0..N-1 are drawn and skipped), to rerun one rig.
+
 ``--sweep-deg`` is the motor span, centred on 0 (180: -90..90; 340: -170..170, where most of
 the room is seen twice, from both halves of the 270 deg scan).
 
@@ -42,9 +49,10 @@ the room is seen twice, from both halves of the 270 deg scan).
 separate unknown pose per sweep (``calibrate(..., poses="separate")``); ``--sweeps`` sweeps from
 each pose.
 
-    python -m bench.bench_calibration [--runs 20] [--poses 3] [--speed 20] [--sweeps 1] [--plane-points 5000] [--seed 0]
+    python -m bench.bench_calibration [--runs 20] [--start 0] [--poses 3] [--speed 20] [--sweeps 1]
+        [--plane-points 5000] [--seed 0]
         [--layout room|long-bar|network|network-large|axis|hall] [--sweep-deg 340] [--u-distance 3e-5]
-        [--no-part] [--lms1xx] [--resegmentations 4] [--save runs.json]
+        [--no-part] [--lms1xx] [--resegmentations 4] [--save runs.json] [--k1-budget]
     python -m bench.bench_calibration --combine a.json b.json   # the tables over several --save files
 
 The defaults are the documented design of docs/calibration.md ("k1 over 20 random rigs").
@@ -69,6 +77,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+from scipy import sparse
 
 from lrms.calibration import (
     GOAL,
@@ -80,7 +89,7 @@ from lrms.calibration import (
     Observations,
     calibrate,
 )
-from lrms.calibration.adjust import MIN_COS
+from lrms.calibration.adjust import MIN_COS, Adjustment
 from lrms.cylinder import Cylinder, Rays, fit_cylinder
 from lrms.kinematics import RigCalibration, RigModel
 from sim.scene import (
@@ -311,6 +320,70 @@ def lms_part(
     return {"error": result["diameter_m"] - SEED003_DIAMETER, "U": unc["expanded_m"], "u_cal": u_cal}
 
 
+class NormalCapture:
+    """``--k1-budget``: records the last adjustment's system (the :class:`Adjustment`, its free
+    names and weighted Jacobian) when :meth:`Adjustment.covariance` is called, to recompute k1's
+    standard deviation from the normal matrix with some observations weighted differently."""
+
+    def __enter__(self) -> NormalCapture:
+        self.last: tuple[Adjustment, list[str], sparse.csr_matrix] | None = None
+        self._orig = Adjustment.covariance
+        capture = self
+
+        def covariance(adj: Adjustment, names: list[str], jac: sparse.csr_matrix, r: np.ndarray) -> object:
+            capture.last = (adj, names, jac)
+            return capture._orig(adj, names, jac, r)
+
+        Adjustment.covariance = covariance  # type: ignore[method-assign,assignment]
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        Adjustment.covariance = self._orig  # type: ignore[method-assign]
+
+
+def k1_budget(adj: Adjustment, names: list[str], jac: sparse.csr_matrix) -> dict[str, float]:
+    """k1's standard deviation (ppm) from the normal matrix of the final adjustment, as it is and
+    with groups of observations weighted as if there were more (or better) of them: each sphere's
+    beams per sweep, every sphere's / every plane's beams, the diameters' and distances'
+    uncertainties. The a-priori std (variance factor 1): what the data's design allows."""
+    st = adj.state
+    n_rows = jac.shape[0]
+    group: dict[str, np.ndarray] = {}
+    row = 0
+    for pl in st.planes:
+        group.setdefault("planes", np.zeros(n_rows, bool))[row : row + pl.index.size] = True
+        row += pl.index.size
+    for sp in st.spheres:
+        w = adj.which[sp.index]
+        for k in np.unique(w):
+            m = np.zeros(n_rows, bool)
+            m[row + np.flatnonzero(w == k)] = True
+            group[f"sphere {sp.artefact_index} sweep {k} ({int(m.sum())} beams)"] = m
+        group.setdefault("spheres", np.zeros(n_rows, bool))[row : row + sp.index.size] = True
+        row += sp.index.size
+    group["diameters"] = np.zeros(n_rows, bool)
+    group["diameters"][row : row + len(st.spheres)] = True
+    row += len(st.spheres)
+    group["distances"] = np.zeros(n_rows, bool)
+    group["distances"][row : row + len(adj.distances)] = True
+    k = names.index("k1")
+
+    def std(weights: np.ndarray) -> float:
+        wj = sparse.diags(np.sqrt(weights)) @ jac
+        return float(np.sqrt(np.linalg.inv((wj.T @ wj).toarray())[k, k])) * 1e6
+
+    one = np.ones(n_rows)
+    out = {"as is": std(one)}
+    for name, m in group.items():
+        for factor, label in (
+            ((4.0, "u / 2"), (1e-4, "u x 100")) if name in ("diameters", "distances") else ((2.0, "x 2"),)
+        ):
+            w = one.copy()
+            w[m] *= factor
+            out[f"{name} {label}"] = std(w)
+    return out
+
+
 def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.rad2deg(np.arccos(np.clip(abs(float(a @ b)), -1.0, 1.0))))
 
@@ -363,10 +436,13 @@ def combine(files: list[str]) -> int:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runs", type=int, default=20)
-    ap.add_argument("--speed", type=float, default=20.0, help="calibration sweep speed, deg/s (25 Hz scans)")
+    ap.add_argument(
+        "--speed", type=float, default=None, help="calibration sweep speed, deg/s (25 Hz scans; 10 for hall, else 20)"
+    )
     ap.add_argument("--sweeps", type=int, default=1, help="calibration sweeps per run (independent noise)")
     ap.add_argument("--plane-points", type=int, default=5000, help="beams used per plane")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--start", type=int, default=0, help="first run (the rigs of the runs before are drawn, not run)")
     ap.add_argument(
         "--resegmentations", type=int, default=AdjustOptions.max_resegmentations,
         help="re-segmentation rounds at most (1: the single re-segmentation of before)",
@@ -381,11 +457,16 @@ def main(argv: list[str] | None = None) -> int:
         "--lms1xx", action="store_true", help="also measure the part with the LMS1xx footprint sensor: error vs U"
     )
     ap.add_argument("--no-part", action="store_true", help="skip the seed 003 part before / after")
+    ap.add_argument(
+        "--k1-budget", action="store_true", help="print k1's std from the normal matrix with data groups reweighted"
+    )
     ap.add_argument("--save", metavar="FILE.json", default=None, help="write the runs' errors after every run")
     ap.add_argument("--combine", nargs="+", metavar="FILE.json", default=None, help="tables over --save files")
     args = ap.parse_args(argv)
     if args.combine:
         return combine(args.combine)
+    if args.speed is None:  # the hall layout's k1 needs twice the sphere beams (docs/calibration.md)
+        args.speed = 10.0 if args.layout == "hall" else 20.0
     rng = np.random.default_rng(args.seed)
     scene, art = layout(args.layout, args.u_distance)
     poses = {"axis": AXIS_POSES, "hall": HALL_POSES}.get(args.layout, POSES)
@@ -398,7 +479,9 @@ def main(argv: list[str] | None = None) -> int:
     lms: list[tuple[dict[str, float], dict[str, float]]] = []
     failures: list[str] = []
     t0 = time.perf_counter()
-    for run in range(args.runs):
+    for _ in range(args.start):
+        draw_rig(rng)
+    for run in range(args.start, args.start + args.runs):
         rig = draw_rig(rng)
         hits: dict[str, int] = {}
         usable: dict[str, int] = {}
@@ -409,11 +492,19 @@ def main(argv: list[str] | None = None) -> int:
             for k in range(args.sweeps)
         ]
         try:
-            res = calibrate(sweeps, art, options=opts, poses="separate" if args.poses > 1 else "shared")
+            with NormalCapture() as cap:
+                res = calibrate(sweeps, art, options=opts, poses="separate" if args.poses > 1 else "shared")
         except CalibrationError as exc:  # e.g. a sweep that cannot be registered: counted, not fatal
             failures.append(f"run {run}: {exc}")
             print(f"run {run:2d}: calibration failed: {exc}", flush=True)
             continue
+        lost = sorted(set(range(len(art.spheres))) - {sf.artefact_index for sf in res.surfaces if sf.kind == "sphere"})
+        if lost:
+            print(f"        artefact spheres not in the adjustment: {lost}", flush=True)
+        if args.k1_budget and cap.last is not None and "k1" in cap.last[1]:
+            print("        k1 std (ppm) from the normal matrix, data reweighted:", flush=True)
+            for label, v in k1_budget(*cap.last).items():
+                print(f"          {label:40s} {v:7.2f}", flush=True)
         truth = rig.canonical()
         std = res.std()
         worst = ("", 0.0)

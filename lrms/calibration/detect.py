@@ -3,9 +3,9 @@
 Planes: sequential RANSAC (:func:`lrms.ransac.ransac` with :class:`~lrms.ransac.PlaneModel`)
 with a loose threshold (a miscalibrated rig bends a wall by up to a few centimetres), largest
 first, until the next plane holds fewer than ``min_plane_points``; a plane whose points spread
-less than ``min_plane_extent_m`` (standard deviation along its second axis), or whose points do
-not form one connected patch for the most part (neighbours within ``plane_gap_m``: the caps of
-spheres that happen to line up, strips of bent walls), is not taken. Spheres: the points that are
+less than ``min_plane_extent_m`` (standard deviation along its second axis, of its main patch), or
+whose points do not form one connected patch for the most part (neighbours within ``plane_gap_m``:
+the caps of spheres that happen to line up, strips of bent walls), is not taken. Spheres: the points that are
 on no plane are split into connected clusters (neighbours within ``cluster_gap_m``), a sphere
 is fitted to each cluster (algebraic, then geometric least squares), and a cluster is taken as
 the artefact's sphere whose radius is nearest, if the fitted radius is within
@@ -95,29 +95,33 @@ def detect_planes(points: FloatArray, opts: DetectOptions, rng: np.random.Genera
 
 
 def plane_support_ok(points: FloatArray, members: IntArray, opts: DetectOptions, rng: np.random.Generator) -> bool:
-    """Whether ``points[members]`` can be a plane of the room: at least ``min_plane_points``, spread
-    at least ``min_plane_extent_m`` (standard deviation along its second axis: a slice through a
-    sphere or a bundle of leftovers is not a plane), and for the most part one connected patch
-    (neighbours within ``plane_gap_m``: caps of spheres that happen to line up, strips of other
-    walls are not)."""
+    """Whether ``points[members]`` can be a plane of the room: at least ``min_plane_points``, for
+    the most part one connected patch (neighbours within ``plane_gap_m``, in a random subset of
+    4,000: caps of spheres that happen to line up, strips of other walls are not), and that main
+    patch spread at least ``min_plane_extent_m`` (standard deviation along its second axis: a
+    slice through a sphere, or one sphere's cap with a few leftovers of the walls far off for
+    spread, is not a plane; docs/calibration.md, "A lost far sphere")."""
     if members.size < opts.min_plane_points:
         return False
-    sv = np.linalg.svd(points[members[:: max(1, members.size // 5000)]] - points[members].mean(axis=0),
-                       compute_uv=False)  # fmt: skip
-    if sv[1] / np.sqrt(min(members.size, 5000)) < opts.min_plane_extent_m:
+    main = _main_patch(points[members], opts.plane_gap_m, rng)
+    if main is None:
         return False
-    return _mostly_connected(points[members], opts.plane_gap_m, rng)
+    sv = np.linalg.svd(main - main.mean(axis=0), compute_uv=False)
+    return bool(sv[1] / np.sqrt(main.shape[0]) >= opts.min_plane_extent_m)
 
 
-def _mostly_connected(pts: FloatArray, gap: float, rng: np.random.Generator, sample: int = 4000) -> bool:
-    """Whether half of a plane's points (a random subset of ``sample``) form one connected patch
-    (neighbours within ``gap``)."""
+def _main_patch(pts: FloatArray, gap: float, rng: np.random.Generator, sample: int = 4000) -> FloatArray | None:
+    """The largest connected patch (neighbours within ``gap``) of a random subset of ``sample`` of
+    a plane's points, or ``None`` when it holds less than half of them."""
     if pts.shape[0] > sample:
         pts = pts[rng.choice(pts.shape[0], sample, replace=False)]
     pairs = cKDTree(pts).query_pairs(gap, output_type="ndarray")
     graph = sparse.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(pts), len(pts)))
     _, labels = csgraph.connected_components(graph, directed=False)
-    return bool(np.bincount(labels).max() >= 0.5 * len(pts))
+    counts = np.bincount(labels)
+    if counts.max() < 0.5 * len(pts):
+        return None
+    return np.asarray(pts[labels == counts.argmax()])
 
 
 def _fit_sphere(pts: FloatArray) -> tuple[FloatArray, float, float]:

@@ -6,7 +6,9 @@ is tried against every triple of the first sweep's (equal diameters, centre dist
 ``tolerance_m``), the rigid transform of each consistent pair of triples (Kabsch) is applied to
 all its spheres, and the transform under which most spheres land on a sphere of the same
 diameter (least rms on a tie) is the sweep's initial pose; its spheres take the identities of
-the first sweep's they land on (spheres the first sweep did not see are dropped). Its planes
+the first sweep's they land on; a sphere of an artefact index no earlier sweep found joins the
+world's spheres, placed by the sweep's initial pose (a far sphere lost in the first sweep's nominal
+cloud is still used: docs/calibration.md, "A lost far sphere"). Its planes
 are then moved into the world and merged with a world plane of the same orientation (within
 ``angle_deg``) and offset (within ``tolerance_m`` x 2), or added as a new one. The adjustment
 (:class:`lrms.calibration.adjust.Adjustment` with ``which`` and ``poses``) refines the poses with
@@ -122,6 +124,15 @@ def merge(
         poses.append(t)
         for i, j in pairs.items():
             members[j].append(spheres[k][i].index + offsets[k])
+        # a sphere this sweep found and no earlier one did (e.g. one far out on the first pose's
+        # shaft, lost in its nominal cloud: docs/calibration.md, "A lost far sphere") joins the
+        # world's, placed by this sweep's initial pose
+        known = {s.artefact_index for s in ref}
+        for i, sp in enumerate(spheres[k]):
+            if i not in pairs and sp.artefact_index not in known:
+                members[len(ref)] = [sp.index + offsets[k]]
+                ref.append(SphereSeg(sp.index, t[:3, :3] @ sp.center + t[:3, 3], sp.radius, sp.artefact_index))
+                known.add(sp.artefact_index)
     world_spheres = [
         SphereSeg(np.concatenate(members[j]), s.center, s.radius, s.artefact_index) for j, s in enumerate(ref)
     ]

@@ -19,7 +19,7 @@ from lrms.calibration import (
     calibrate,
 )
 from lrms.calibration.detect import SphereSeg
-from lrms.calibration.poses import kabsch, match_spheres
+from lrms.calibration.poses import kabsch, match_spheres, merge
 from sim.scene import SensorModel, continuous_sweep_cloud, get_scene
 from sim.scene.library import room_spheres_artefact
 
@@ -183,3 +183,22 @@ def test_registration_tolerance_grows_with_range() -> None:
     found, pairs = match_spheres(ref, other)
     assert pairs == {0: 0, 1: 1, 2: 2, 3: 3}
     np.testing.assert_allclose(found[:3, :3], t[:3, :3], atol=0.02)
+
+
+def test_a_sphere_the_first_sweep_lost_joins_from_a_later_one() -> None:
+    """Seed 11 run 6 of the hall bench (docs/calibration.md, "A lost far sphere"): the first sweep
+    lost sphere 0 (far on its shaft), the second found it 1.3 m away; it was dropped because the
+    world's spheres were the first sweep's. Now it joins, placed by the second sweep's pose, with
+    the second sweep's beams; a later sweep's sphere of an index already known is not added twice."""
+    centres = np.array([[0.0, 9.0, 0.0], [0.0, 1.0, 0.6], [-3.3, 3.0, 0.3], [2.3, 3.5, 0.0]])
+    t = pose((0.0, 10.2, 0.45), 180.0, 1.0)
+    seen = (centres - t[:3, 3]) @ t[:3, :3]  # from the second pose
+    first = [SphereSeg(np.arange(10, 13) + 3 * i, centres[i], 0.25, i) for i in (1, 2, 3)]
+    second = [SphereSeg(np.arange(5) + 5 * i, seen[i], 0.25, i) for i in (0, 1, 2, 3)]
+    third = [SphereSeg(np.arange(2) + 2 * i, seen[i], 0.25, i) for i in (0, 1, 2, 3)]  # as the second
+    _, spheres, poses = merge([[], [], []], [first, second, third], [0, 100, 200])
+    assert sorted(s.artefact_index for s in spheres) == [0, 1, 2, 3]
+    s0 = next(s for s in spheres if s.artefact_index == 0)
+    np.testing.assert_allclose(s0.center, centres[0], atol=1e-9)
+    np.testing.assert_array_equal(np.sort(s0.index), [100, 101, 102, 103, 104, 200, 201])
+    np.testing.assert_allclose(poses[1], t, atol=1e-9)
