@@ -34,8 +34,9 @@ Artefact layouts (``--layout``; docs/calibration.md, "What limits k1 and the mot
   its own poses (:data:`sim.scene.library.HALL_AXIS_POSES`). For k1 (docs/calibration.md, "The
   hall layout").
 
-``--speed``: the sweeps' motor speed, 10 deg/s for ``hall`` (twice the sphere beams of 20: k1's std
-11.5 ppm instead of 15.6; docs/calibration.md, "The hall layout: what limits k1"), 20 otherwise.
+``--speed``: the sweeps' motor speed, 20 deg/s (``--speed 10`` for ``hall`` gives twice the sphere
+beams: k1's std 11.3 ppm instead of 15.5, but p's reported std came out 1.4x optimistic over 19 rigs,
+untraced; docs/calibration.md, "The hall layout: what limits k1").
 ``--k1-budget``: k1's standard deviation from the final normal matrix, as is and with each group of
 observations (a sphere's beams in one sweep, all sphere beams, all plane beams) counted twice and
 the diameters' / distances' uncertainties halved or 100x: which data would shrink it.
@@ -436,9 +437,7 @@ def combine(files: list[str]) -> int:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runs", type=int, default=20)
-    ap.add_argument(
-        "--speed", type=float, default=None, help="calibration sweep speed, deg/s (25 Hz scans; 10 for hall, else 20)"
-    )
+    ap.add_argument("--speed", type=float, default=20.0, help="calibration sweep speed, deg/s (25 Hz scans)")
     ap.add_argument("--sweeps", type=int, default=1, help="calibration sweeps per run (independent noise)")
     ap.add_argument("--plane-points", type=int, default=5000, help="beams used per plane")
     ap.add_argument("--seed", type=int, default=0)
@@ -465,8 +464,6 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.combine:
         return combine(args.combine)
-    if args.speed is None:  # the hall layout's k1 needs twice the sphere beams (docs/calibration.md)
-        args.speed = 10.0 if args.layout == "hall" else 20.0
     rng = np.random.default_rng(args.seed)
     scene, art = layout(args.layout, args.u_distance)
     poses = {"axis": AXIS_POSES, "hall": HALL_POSES}.get(args.layout, POSES)
