@@ -450,14 +450,17 @@ def _solved_on_inliers(pts: FloatArray, rays: Rays, fit: CylinderFit) -> Cylinde
     """``fit`` solved on all its inliers (one round of :func:`refine_cylinder` from its model; its
     inlier selection and covariance with it), ``fit`` itself if that solve fails. For the
     multi-start's winner left unsolved (``polish=False`` of :func:`_multistart`) when no refit follows.
-    Such a winner carries no covariance (all NaN): when its solve fails, the :class:`FitError` is raised."""
+    Such a winner carries no covariance (all NaN): when its solve fails, it gets the covariance of
+    its own model on its inliers (:func:`refine_cylinder` with no solver step), as it had before
+    its covariance was left out for speed; only if that fails too is the :class:`FitError` raised."""
     idx = fit.inliers
     try:
         new = refine_cylinder(pts[idx], fit.cylinder, rays=rays.subset(idx), max_rounds=1)
     except FitError:
-        if not np.all(np.isfinite(fit.covariance)):
-            raise  # an unsolved winner (no covariance): nothing to return
-        return fit
+        if np.all(np.isfinite(fit.covariance)):
+            return fit
+        # the winner's model as it is, linearised for its covariance (no solver step)
+        new = refine_cylinder(pts[idx], fit.cylinder, rays=rays.subset(idx), max_rounds=1, max_nfev=0)
     return replace(
         fit,
         cylinder=new.cylinder,
