@@ -164,6 +164,10 @@ def test_a_measurement_just_outside_its_range_is_flagged_in_its_result_and_decis
     assert "outside the nominal diameter range [127.0, 137.0] mm" in dec["note"]
     hist = client.get("/api/v1/recipes/SHAFT-NARROW-RANGE/history").json()
     assert [(h["part_id"], h["outcome"]) for h in hist] == [("N1", "cannot_decide")]
+    assert hist[0]["nominal_range_excess_m"] == pr["diameter_range_excess_m"]
+    csv_rows = client.get("/api/v1/recipes/SHAFT-NARROW-RANGE/history.csv").text.splitlines()
+    assert csv_rows[0].endswith(",usl_m,nominal_range_excess_m")
+    assert float(csv_rows[1].rsplit(",", 1)[1]) == pytest.approx(pr["diameter_range_excess_m"], rel=1e-12)
     # far outside (the range ends 12.5 mm below, about 30 u): the measurement fails with the reason
     far = _finished(
         client,
