@@ -97,7 +97,8 @@ class FitOptions(_Strict):
         default=None,
         gt=0.0,
         le=10.0,
-        description="cylinder: nominal diameter (m); other sizes are rejected",
+        description="cylinder: nominal diameter (m); candidates of other sizes are rejected, a final fit outside"
+        " the range within 3 of its u is flagged (result diameter_range_excess_m), farther out the measurement fails",
     )
     diameter_tolerance_m: float | None = Field(
         default=None, gt=0.0, le=10.0, description="cylinder: accepted deviation from nominal_diameter_m (default 10 %)"

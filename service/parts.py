@@ -6,7 +6,8 @@ conformity decision (the numerics are :mod:`lrms.thermal` and :mod:`lrms.conform
     part      {recipe, recipe_version, part_id, operator}
     thermal   {material, part_temperature_c, temperature_uncertainty_c, diameter_measured_m,
                diameter_20c_m, u_thermal_m, budget: [rows]}          (None without a temperature)
-    decision  {rule, outcome, value_m, lsl_m, usl_m, expanded_m, k, acceptance_zone_m: [lo, hi], note,
+    decision  {rule, outcome, value_m, lsl_m, usl_m, expanded_m, k, acceptance_zone_m: [lo, hi],
+               nominal_range_excess_m, note,
                characteristics: [{characteristic, unit, value, lsl, usl, expanded, k, acceptance_zone,
                                   outcome, note}]}
 
@@ -14,7 +15,10 @@ The decided value is the diameter (cylinder: the part's; elbow: the pipe's D), a
 temperature was given; ``decision``'s ``value_m`` .. ``acceptance_zone_m`` are the diameter's. An
 elbow recipe may also tolerance the bend radius A (corrected to 20 °C as D is, U from the fit's
 sigma of A and the thermal rows) and the bend angle; each is decided in ``characteristics``, and
-``outcome`` is the worst of them (does not conform, then cannot decide, then conforms). The
+``outcome`` is the worst of them (does not conform, then cannot decide, then conforms). A cylinder
+fit flagged outside its request's nominal diameter range (``diameter_range_excess_m`` not None)
+never *conforms*: its diameter's outcome is then *cannot decide* at best, the note says why and
+``decision.nominal_range_excess_m`` repeats the excess (None otherwise). The
 elbow fit holds the bend angle fixed (given, or its start value from the pipe ends), so an angle
 tolerance is *cannot decide* until the fit estimates the angle with an uncertainty.
 
@@ -95,6 +99,7 @@ def part_result(result: dict[str, Any], request_part: dict[str, Any], recipe: Re
     what = "diameter at 20 °C" if thermal is not None else "measured diameter"
     how = f"U = {k:g} u_c of the measurement budget" + (" and the thermal rows" if thermal else "")
     diameter = _characteristic("diameter", "m", value, k * u_c, k, tol.lsl, tol.usl, rule, f"{what}; {how}")
+    diameter = _nominal_range_flag(diameter, result)
     characteristics = [diameter, *_elbow_characteristics(result, recipe, request_part, k, rule)]
     outcome = max((c["outcome"] for c in characteristics), key=SEVERITY.__getitem__)
     note = diameter["note"]
@@ -119,6 +124,7 @@ def part_result(result: dict[str, Any], request_part: dict[str, Any], recipe: Re
             "expanded_m": diameter["expanded"],
             "k": k,
             "acceptance_zone_m": diameter["acceptance_zone"],
+            "nominal_range_excess_m": result.get("diameter_range_excess_m"),
             "note": note,
             "characteristics": characteristics,
         },
@@ -154,6 +160,25 @@ def _characteristic(
     if c.uncertainty_too_large:
         note += " (the acceptance zone is empty: its lower end is above its upper end)"
     return out | {"outcome": OUTCOMES[c.decision], "expanded": expanded, "acceptance_zone": zone, "note": note}
+
+
+def _nominal_range_flag(diameter: dict[str, Any], result: dict[str, Any]) -> dict[str, Any]:
+    """The diameter's decision on a fit flagged outside the request's nominal diameter range
+    (``diameter_range_excess_m``: within 3 of its u, :func:`lrms.cylinder.nominal_check`): the
+    note says so, and *conforms* becomes *cannot decide*: the fit is of doubtful plausibility (a
+    wrong part, or a fit whose family choice it cannot make), so it proves no conformity; a
+    *does not conform* stands."""
+    excess = result.get("diameter_range_excess_m")
+    if excess is None:
+        return diameter
+    lo, hi = (1e3 * float(x) for x in result["diameter_range_m"])
+    flag = (
+        f"the fit is outside the nominal diameter range [{lo:.1f}, {hi:.1f}] mm of the request by"
+        f" {1e3 * float(excess):+.2f} mm ({float(result['diameter_range_excess_u']):.2f} u of the fit)"
+    )
+    if diameter["outcome"] == "conforms":
+        return diameter | {"outcome": "cannot_decide", "note": f"{diameter['note']}; {flag}: cannot decide"}
+    return diameter | {"note": f"{diameter['note']}; {flag}"}
 
 
 def _elbow_characteristics(

@@ -201,6 +201,15 @@ def _values(result: dict[str, Any]) -> list[tuple[str, str]]:
         rows.append(("combined standard uncertainty u_c", _mm(unc["combined_m"], 4)))
     if "d_min_m" in unc and "d_max_m" in unc:
         rows.append(("critical-point interval", f"{_mm(unc['d_min_m'])} .. {_mm(unc['d_max_m'])}"))
+    rng = result.get("diameter_range_m")
+    if isinstance(rng, list | tuple) and len(rng) == 2:
+        rows.append(("nominal diameter range of the request", f"{_mm(rng[0])} .. {_mm(rng[1])}"))
+        excess = result.get("diameter_range_excess_m")
+        if excess is not None:  # the fit outside it, within 3 of its u (lrms.cylinder.nominal_check)
+            f = _finite(excess)
+            by = "-" if f is None else f"{f * 1e3:+.3f} mm"
+            in_u = _num(result.get("diameter_range_excess_u"), ".2f")
+            rows.append(("warning: outside the nominal range by", f"{by} ({in_u} u of the fit)"))
     for key, label in (("bend_radius_m", "bend radius A"), ("flange_diameter_m", "flange diameter")):
         if key in result:
             rows.append((label, _mm(result[key])))

@@ -499,6 +499,7 @@ def write_parquet(path: str | Path, store: VersionStore, measurements: Iterable[
             "diameter_m",
             "expanded_u_m",
             "decision",
+            "diameter_range_excess_m",
             "original_diameter_m",
             "original_decision",
             "result_json",
@@ -516,6 +517,8 @@ def write_parquet(path: str | Path, store: VersionStore, measurements: Iterable[
         cols["diameter_m"].append(d)
         cols["expanded_u_m"].append(u)
         cols["decision"].append(decision_of(v.result))
+        # a cylinder fit outside its request's nominal range within 3 u (else None): its flag
+        cols["diameter_range_excess_m"].append((v.result or {}).get("diameter_range_excess_m"))
         cols["original_diameter_m"].append(m.original_diameter_m)
         cols["original_decision"].append(m.original_decision)
         cols["result_json"].append(json.dumps(v.result))
@@ -530,6 +533,7 @@ def write_parquet(path: str | Path, store: VersionStore, measurements: Iterable[
             ("diameter_m", pa.float64()),
             ("expanded_u_m", pa.float64()),
             ("decision", pa.string()),
+            ("diameter_range_excess_m", pa.float64()),
             ("original_diameter_m", pa.float64()),
             ("original_decision", pa.string()),
             ("result_json", pa.string()),

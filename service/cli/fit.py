@@ -18,6 +18,10 @@ import sys
 from typing import Any
 
 HELP = "fit a cylinder (diameter with uncertainty) or a pipe elbow to a point cloud file"
+#: Exit status of a cylinder fit outside ``--nominal-diameter``'s range by more than 3 of its u
+#: (:class:`lrms.errors.NominalDiameterError`: a wrong part or a fit gone astray); other errors exit
+#: with 1, a fit outside the range within 3 u is reported with 0 and a warning line.
+EXIT_NOMINAL_DIAMETER = 3
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -108,6 +112,16 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from lrms.errors import NominalDiameterError
+
+    try:
+        return _run(args)
+    except NominalDiameterError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_NOMINAL_DIAMETER
+
+
+def _run(args: argparse.Namespace) -> int:
     from service.pointio import read_points
 
     points = read_points(args.file)

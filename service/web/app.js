@@ -131,6 +131,15 @@ function renderDetail(m) {
   if (r.diameter_m !== undefined) rows.push(["diameter (measured)", mm(r.diameter_m)]);
   if (r.thermal) rows.push(["diameter at 20 C", mm(r.thermal.diameter_20c_m)]);
   if (u.expanded_m !== undefined) rows.push([`U (k = ${u.k})`, mm(u.expanded_m, 4)]);
+  if (typeof r.diameter_range_excess_m === "number" && Array.isArray(r.diameter_range_m)) {
+    // a fit outside the request's nominal diameter range within 3 of its u (docs/service.md)
+    const [lo, hi] = r.diameter_range_m;
+    const by = `${r.diameter_range_excess_m >= 0 ? "+" : ""}${(r.diameter_range_excess_m * 1e3).toFixed(2)} mm`;
+    rows.push([
+      "warning",
+      `outside the nominal range ${mm(lo, 1)} .. ${mm(hi, 1)} by ${by} (${Number(r.diameter_range_excess_u).toFixed(2)} u of the fit)`,
+    ]);
+  }
   if (r.decision) rows.push(["decision", `${r.decision.outcome} (${r.decision.rule})`]);
   for (const [k, v] of rows) {
     const tr = document.createElement("tr");

@@ -252,3 +252,19 @@ def test_failed_measurement_report_over_http_needs_a_read_token(
         assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
         assert '<script src="/ui/app.js"' in page.text
         assert "fetch(" in c.get("/ui/app.js").text and c.get("/ui/style.css").status_code == 200
+
+
+def test_a_fit_flagged_outside_its_nominal_range_says_so() -> None:
+    """The request's nominal diameter range in the measured values, and the flag of a fit outside
+    it within 3 u (``diameter_range_excess_m`` / ``_u``) as a warning row; none inside it."""
+    r = full_result("cannot_decide") | {
+        "diameter_range_m": [0.2925, 0.3225],
+        "diameter_range_excess_m": 0.00301,
+        "diameter_range_excess_u": 1.46,
+    }
+    text = text_of(render_html(measurement(r, None), CFG))
+    assert "nominal diameter range of the request 292.500 mm .. 322.500 mm" in text
+    assert "warning: outside the nominal range by +3.010 mm (1.46 u of the fit)" in text
+    inside = r | {"diameter_range_excess_m": None, "diameter_range_excess_u": None}
+    text = text_of(render_html(measurement(inside, None), CFG))
+    assert "nominal diameter range of the request" in text and "outside the nominal range" not in text

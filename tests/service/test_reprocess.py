@@ -126,6 +126,9 @@ def test_local_cluster_refits_the_archive_and_a_rerun_skips_everything(archive: 
         if r["measurement_id"] != moved:
             assert r["diameter_m"] == pytest.approx(r["original_diameter_m"], abs=1e-9)
         assert 0 < r["expanded_u_m"] < 0.01 and json.loads(r["result_json"])["diameter_m"] == r["diameter_m"]
+        # no nominal diameter range in these requests: no flag
+        assert r["diameter_range_excess_m"] is None
+        assert json.loads(r["result_json"])["diameter_range_excess_m"] is None
 
     # a second run, on an existing cluster given by its scheduler's address, finds every good log
     # stored and fits nothing; the corrupt ones fail again

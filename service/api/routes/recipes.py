@@ -189,6 +189,11 @@ class HistoryRow(BaseModel):
     expanded_m: float | None
     lsl_m: float | None
     usl_m: float | None
+    nominal_range_excess_m: float | None = Field(
+        default=None,
+        description="the fit is outside the recipe's nominal diameter range (options.nominal_diameter_m) within 3 of"
+        " its u: the diameter minus the nearer bound (m); its outcome is then never 'conforms'",
+    )
 
 
 HISTORY_COLUMNS = tuple(HistoryRow.model_fields)
@@ -225,6 +230,7 @@ def _row(link: PartLink, state: str, finished_at: float | None, result: dict[str
         expanded_m=dec.get("expanded_m"),
         lsl_m=dec.get("lsl_m"),
         usl_m=dec.get("usl_m"),
+        nominal_range_excess_m=(result or {}).get("diameter_range_excess_m"),
     )
 
 
