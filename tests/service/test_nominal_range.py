@@ -12,6 +12,8 @@ the check; a thin-beam fit outside the range is refused earlier ("no cylinder fo
 
 from __future__ import annotations
 
+import csv
+import io
 import json
 import os
 import subprocess
@@ -134,17 +136,11 @@ def test_a_measurement_just_outside_its_range_is_flagged_in_its_result_and_decis
     footprint_rig: httpx.Client,
 ) -> None:
     client = footprint_rig
-    # the part measures 137.5 +- 0.3 mm with a u of about 0.4 mm: a range ending 0.5 mm below it
+    # the part measures 137.5 +- 0.3 mm (one sweep's scatter) with a u of about 0.4 mm: a range
+    # ending 0.5 mm below it. One sweep lands inside the range or beyond 3 u now and then (about
+    # 1 in 20), so each measurement is checked against its own diameter, and the flagged case is
+    # required of at least one of up to four recipe parts (all four missing it: about 1e-5)
     near = {"nominal_diameter_m": 0.132, "diameter_tolerance_m": 0.005}
-    m = _finished(client, {"target": "cylinder", "sweep": STEP, "options": near})
-    assert m["state"] == "done", m["error"]
-    r = m["result"]
-    assert r["footprint"] is not None and r["diameter_range_m"] == pytest.approx([0.127, 0.137])
-    assert r["diameter_m"] > 0.137, r["diameter_m"]
-    assert r["diameter_range_excess_m"] == pytest.approx(r["diameter_m"] - 0.137, abs=1e-12)
-    assert 0.0 < r["diameter_range_excess_u"] <= 3.0, (r["diameter_m"], r["diameter_range_excess_u"])
-    # a recipe whose tolerance the measured diameter meets, but whose options' range it is outside:
-    # the decision does not say "conforms" on a fit the plausibility check flagged
     recipe = {
         "name": "SHAFT-NARROW-RANGE",
         "target": "cylinder",
@@ -153,21 +149,54 @@ def test_a_measurement_just_outside_its_range_is_flagged_in_its_result_and_decis
         "options": near,
     }
     assert client.post("/api/v1/recipes", json=recipe).status_code == 201
-    part = _finished(client, {"recipe": "SHAFT-NARROW-RANGE", "part_id": "N1"})
-    assert part["state"] == "done", part["error"]
-    pr, dec = part["result"], part["result"]["decision"]
-    assert pr["diameter_range_excess_m"] is not None
-    lsl, usl = dec["acceptance_zone_m"]
-    assert lsl < dec["value_m"] < usl  # inside the acceptance zone: conforms but for the flag
-    assert dec["outcome"] == "cannot_decide"
-    assert dec["nominal_range_excess_m"] == pr["diameter_range_excess_m"]
-    assert "outside the nominal diameter range [127.0, 137.0] mm" in dec["note"]
+    flagged: list[dict[str, Any]] = []
+    outcomes: list[tuple[str, str]] = []  # the recipe parts done: (part_id, outcome)
+    for k in range(5):
+        # a free-form measurement first, then parts of a recipe whose tolerance the part meets but
+        # whose options' range ends below it
+        body = (
+            {"target": "cylinder", "sweep": STEP, "options": near}
+            if k == 0
+            else {"recipe": recipe["name"], "part_id": f"N{k}"}
+        )
+        m = _finished(client, body)
+        if m["state"] == "failed":  # more than 3 u above the range: the typed check's reason
+            assert "no cylinder of the nominal diameter found" in m["error"] and "(more than 3 u)" in m["error"], m[
+                "error"
+            ]
+            continue
+        assert m["state"] == "done", m["error"]
+        r = m["result"]
+        assert r["footprint"] is not None and r["diameter_range_m"] == pytest.approx([0.127, 0.137])
+        if r["diameter_m"] <= 0.137:  # inside: no flag
+            assert r["diameter_range_excess_m"] is None and r["diameter_range_excess_u"] is None
+        else:
+            assert r["diameter_range_excess_m"] == pytest.approx(r["diameter_m"] - 0.137, abs=1e-12)
+            assert 0.0 < r["diameter_range_excess_u"] <= 3.0, (r["diameter_m"], r["diameter_range_excess_u"])
+        if k == 0:
+            continue
+        dec = r["decision"]
+        outcomes.append((f"N{k}", dec["outcome"]))
+        lsl, usl = dec["acceptance_zone_m"]
+        assert lsl < dec["value_m"] < usl  # inside the acceptance zone: conforms but for the flag
+        if r["diameter_range_excess_m"] is None:
+            assert dec["outcome"] == "conforms" and dec.get("nominal_range_excess_m") is None
+            continue
+        # the decision does not say "conforms" on a fit the plausibility check flagged
+        assert dec["outcome"] == "cannot_decide"
+        assert dec["nominal_range_excess_m"] == r["diameter_range_excess_m"]
+        assert "outside the nominal diameter range [127.0, 137.0] mm" in dec["note"]
+        flagged.append({"part_id": f"N{k}", "excess": r["diameter_range_excess_m"]})
+        break
+    assert flagged, "no recipe part of four landed just outside the range"
     hist = client.get("/api/v1/recipes/SHAFT-NARROW-RANGE/history").json()
-    assert [(h["part_id"], h["outcome"]) for h in hist] == [("N1", "cannot_decide")]
-    assert hist[0]["nominal_range_excess_m"] == pr["diameter_range_excess_m"]
-    csv_rows = client.get("/api/v1/recipes/SHAFT-NARROW-RANGE/history.csv").text.splitlines()
-    assert csv_rows[0].endswith(",usl_m,nominal_range_excess_m")
-    assert float(csv_rows[1].rsplit(",", 1)[1]) == pytest.approx(pr["diameter_range_excess_m"], rel=1e-12)
+    assert sorted((h["part_id"], h["outcome"]) for h in hist if h["state"] == "done") == sorted(outcomes)
+    (row,) = [h for h in hist if h["part_id"] == flagged[0]["part_id"]]
+    assert row["outcome"] == "cannot_decide" and row["nominal_range_excess_m"] == flagged[0]["excess"]
+    text = client.get("/api/v1/recipes/SHAFT-NARROW-RANGE/history.csv").text
+    assert text.splitlines()[0].endswith(",usl_m,nominal_range_excess_m")
+    (line,) = [x for x in csv.DictReader(io.StringIO(text)) if x["part_id"] == flagged[0]["part_id"]]
+    assert float(line["nominal_range_excess_m"]) == pytest.approx(flagged[0]["excess"], rel=1e-12)
     # far outside (the range ends 12.5 mm below, about 30 u): the measurement fails with the reason
     far = _finished(
         client,
