@@ -670,7 +670,10 @@ def cylinder_budget(
 # --------------------------------------------------------------------------- Monte Carlo draws
 
 #: Rows whose inputs the Monte Carlo replicas draw on the beams themselves (the others, given as a
-#: diameter contribution, are drawn as a normal error of the replica's diameter).
+#: diameter contribution, are drawn as a normal error of the replica's diameter). "fit (type A)" is
+#: the thin-beam replicas' own spread; a footprint fit's type A beyond it (its estimated spot, the
+#: radius profile) is drawn by :func:`lrms.uncertainty.monte_carlo_interval` as a normal error of
+#: the diameter (:func:`lrms.uncertainty.footprint_type_a_excess`).
 BEAM_SOURCES = tuple(
     s for s in SOURCES if s not in ("footprint / edge model", "edge family (model choice)", "footprint bias correction")
 )
@@ -691,7 +694,9 @@ class ReplicaSystematics:
     distributions, as in :func:`cylinder_budget`: ``errors`` (its type-B inputs), ``beams`` (the
     inliers' angles, scan index and motor speed) and ``diameter_u_m``, the root-sum-square of the
     rows given as a diameter contribution (edge model, calibration, extra rows), drawn as a normal
-    error of each replica's diameter. Build it with :func:`replica_systematics`."""
+    error of each replica's diameter. Build it with :func:`replica_systematics`. (A footprint
+    fit's type A beyond the thin-beam replicas' spread is not here: it is the fit's, drawn by
+    :func:`lrms.uncertainty.monte_carlo_interval`.)"""
 
     errors: SensorErrors
     beams: BeamGeometry
