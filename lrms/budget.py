@@ -465,6 +465,17 @@ def _edge_row(fit: CylinderFit) -> BudgetRow:
             "this fit has no edge model (thin-beam model): under a real LMS1xx's footprint it is biased by "
             "tens of mm, which no row here covers (docs/sensor-model.md)",
         )
+    if fit.extra.get("edge_mode_first", 0.0) < 0:
+        return BudgetRow.of(
+            "footprint / edge model",
+            "B",
+            float(u),
+            "m",
+            1.0,
+            "normal",
+            "the thin beam won the model choice (Akaike criterion) over the footprint families: the reported"
+            " fit has no spot, 0 here; the families' spread is the edge family row (fit.extra['edge_model_u_m'])",
+        )
     scale = fit.extra.get("edge_spot_scale")
     if scale is not None:
         # estimated by the fit: its uncertainty is in the fit's covariance, not carried again here
