@@ -6,7 +6,7 @@ angle, 20 deg/s; the harness of ``tests/service/test_fit_type_a.py``), one noise
 fitted by ``service.fitting.fit``; at its bias-correction step the grazing-weighted fit and its
 beams are taken, and each variant's correction is computed on that same fit. Prints per variant the
 corrected diameter's mean error +- its standard error and RMS(error / std_m). One process, no
-threads: ``python -m bench.bias_miss_rows --sweep short --seeds 1000:4000`` (2280 sweeps took about
+threads: ``python -m bench.bias_miss_rows --sweep short --seeds 1000:3280`` (2280 sweeps took about
 10 min on the shared machine), ``--sweep full --seeds 3:323``.
 """
 

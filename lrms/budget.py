@@ -465,6 +465,17 @@ def _edge_row(fit: CylinderFit) -> BudgetRow:
             "this fit has no edge model (thin-beam model): under a real LMS1xx's footprint it is biased by "
             "tens of mm, which no row here covers (docs/sensor-model.md)",
         )
+    if fit.extra.get("edge_mode_first", 0.0) < 0:
+        return BudgetRow.of(
+            "footprint / edge model",
+            "B",
+            float(u),
+            "m",
+            1.0,
+            "normal",
+            "the thin beam won the model choice (Akaike criterion) over the footprint families: the reported"
+            " fit has no spot, 0 here; the families' spread is the edge family row (fit.extra['edge_model_u_m'])",
+        )
     scale = fit.extra.get("edge_spot_scale")
     if scale is not None:
         # estimated by the fit: its uncertainty is in the fit's covariance, not carried again here
@@ -670,7 +681,10 @@ def cylinder_budget(
 # --------------------------------------------------------------------------- Monte Carlo draws
 
 #: Rows whose inputs the Monte Carlo replicas draw on the beams themselves (the others, given as a
-#: diameter contribution, are drawn as a normal error of the replica's diameter).
+#: diameter contribution, are drawn as a normal error of the replica's diameter). "fit (type A)" is
+#: the thin-beam replicas' own spread; a footprint fit's type A beyond it (its estimated spot, the
+#: radius profile) is drawn by :func:`lrms.uncertainty.monte_carlo_interval` as a normal error of
+#: the diameter (:func:`lrms.uncertainty.footprint_type_a_excess`).
 BEAM_SOURCES = tuple(
     s for s in SOURCES if s not in ("footprint / edge model", "edge family (model choice)", "footprint bias correction")
 )
@@ -691,7 +705,9 @@ class ReplicaSystematics:
     distributions, as in :func:`cylinder_budget`: ``errors`` (its type-B inputs), ``beams`` (the
     inliers' angles, scan index and motor speed) and ``diameter_u_m``, the root-sum-square of the
     rows given as a diameter contribution (edge model, calibration, extra rows), drawn as a normal
-    error of each replica's diameter. Build it with :func:`replica_systematics`."""
+    error of each replica's diameter. Build it with :func:`replica_systematics`. (A footprint
+    fit's type A beyond the thin-beam replicas' spread is not here: it is the fit's, drawn by
+    :func:`lrms.uncertainty.monte_carlo_interval`.)"""
 
     errors: SensorErrors
     beams: BeamGeometry

@@ -26,7 +26,9 @@ c. :func:`monte_carlo_interval`: GUM Supplement 1. The scan is re-simulated from
    plain 2.5 / 97.5 % quantiles would cover only ~94 %). Given
    :class:`lrms.budget.ReplicaSystematics`, the replicas also draw the budget's systematic effects
    (range offset and scale, angle zeros, per-scan motor errors, ...) from their distributions
-   (:mod:`lrms.budget`).
+   (:mod:`lrms.budget`). The replicas are thin-beam refits: a footprint fit's type A beyond
+   their own spread (its estimated spot, the radius profile) is drawn as a normal error of each
+   replica's diameter (:func:`footprint_type_a_excess`).
 """
 
 from __future__ import annotations
@@ -371,6 +373,9 @@ def gum_interval(fit: CylinderFit, coverage_factor: float = 2.0) -> Interval:
 class MonteCarloResult(Interval):
     diameters: FloatArray
     n_failed: int
+    #: a footprint fit's type A beyond the thin-beam replicas' own spread, drawn as a normal error
+    #: of each replica's diameter (m; 0 for a thin-beam fit): :func:`footprint_type_a_excess`
+    footprint_type_a_u: float = 0.0
 
 
 BatchResiduals = Callable[[FloatArray, NDArray[np.intp]], FloatArray]
@@ -516,6 +521,37 @@ def _replica_fit(
     return best
 
 
+def thin_beam_replica_u(fit: CylinderFit, rays: Rays, noise: NoiseModel, p: float = kinematics.DEFAULT_P) -> float:
+    """The diameter's standard uncertainty that :func:`monte_carlo_interval`'s thin-beam replicas
+    reproduce from the beams' noise alone (m): ``2 sqrt((J^T J)^-1)_rr`` of the thin-beam
+    line-of-sight problem on the inliers' beams (``rays``) at their ideal points on the fitted
+    cylinder, the replicas' own linearisation."""
+    truth = ideal_points(fit.cylinder, rays)
+    _, jfun = _replica_problem(_Frame.at(fit.cylinder), truth[None], True, noise, p)
+    jac = jfun(np.zeros((1, 5)), np.arange(1))[0]
+    try:
+        var = float(np.linalg.inv(jac.T @ jac)[4, 4])
+    except np.linalg.LinAlgError as exc:  # pragma: no cover - degenerate geometry
+        raise FitError("the replicas' thin-beam problem is degenerate (singular normal matrix)") from exc
+    return float(2.0 * np.sqrt(max(var, 0.0)))
+
+
+def footprint_type_a_excess(fit: CylinderFit, rays: Rays, noise: NoiseModel, p: float = kinematics.DEFAULT_P) -> float:
+    """A footprint fit's type A (``fit.std_diameter``) that thin-beam replicas do not reproduce (m):
+    ``sqrt(max(u_fit^2 - u_thin^2, 0))``, ``u_thin`` from :func:`thin_beam_replica_u`; 0 for a
+    fit with no footprint model chosen (``fit.extra["edge_mode_first"]`` absent or -1).
+
+    The replicas are thin-beam refits of the beams' noise; a footprint fit's type A is wider: its
+    estimated spot size (a prior row) and the radius profile's ridge (docs/cylinder.md). That
+    share is not re-simulated beam by beam; it is drawn as a normal error of each replica's
+    diameter, as the budget's diameter-level rows are, so the replicas' spread carries it."""
+    if fit.extra.get("edge_mode_first", -1.0) < 0:
+        return 0.0
+    u_fit = fit.std_diameter
+    u_thin = thin_beam_replica_u(fit, rays, noise, p)
+    return float(np.sqrt(max(u_fit * u_fit - u_thin * u_thin, 0.0)))
+
+
 def monte_carlo_interval(
     fit: CylinderFit,
     rays: Rays | None = None,
@@ -547,7 +583,10 @@ def monte_carlo_interval(
     without the grazing weights; when the fit was bias-corrected
     (``fit.extra["bias_correction_diameter_m"]``) they are shifted by the same correction, a thin
     beam's only: a footprint fit's (``fit.extra["edge_mode_first"] >= 0``) corrects the footprint
-    model's bias, which the thin-beam replicas do not carry, and leaves them as they are.
+    model's bias, which the thin-beam replicas do not carry, and leaves them as they are. A
+    footprint fit's type A beyond the thin-beam replicas' own spread (its estimated spot size and
+    the radius profile, :func:`footprint_type_a_excess`) is drawn as a normal error of each
+    replica's diameter (``footprint_type_a_u`` of the result): not re-simulated, a Gaussian.
     """
     if n < 10:
         raise LrmsError(f"Monte Carlo needs at least 10 replicas, got {n}")
@@ -598,6 +637,9 @@ def monte_carlo_interval(
         out -= fit.extra.get("bias_correction_diameter_m", 0.0)
     if systematics is not None and systematics.diameter_u_m > 0:
         out += g.normal(0.0, systematics.diameter_u_m, n)
+    u_fp = footprint_type_a_excess(fit, rays, nm, p) if rays is not None else 0.0
+    if u_fp > 0:
+        out += g.normal(0.0, u_fp, n)
     ok = np.isfinite(out)
     if np.count_nonzero(ok) < 10:
         raise FitError("Monte Carlo refits failed")
@@ -611,4 +653,5 @@ def monte_carlo_interval(
         coverage=coverage,
         diameters=good,
         n_failed=int(np.count_nonzero(~ok)),
+        footprint_type_a_u=u_fp,
     )

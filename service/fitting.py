@@ -142,7 +142,8 @@ def cylinder_result(
     ``expanded_m``, ``k`` (the budget's coverage factor), ``correlation``, ``d_min_m``, ``d_max_m``,
     ``std_m``, ``critical_point`` {``k``, ``r_ce_m``, ``percentile``}, ``gum`` {``std_m``, ``low_m``,
     ``high_m``, ``coverage``, ``coverage_factor``}, ``monte_carlo`` ({``n``, ``low_m``, ``high_m``,
-    ``std_m``, ``coverage``, ``n_failed``, ``systematics``, ``multistart``} or ``None``)}.
+    ``std_m``, ``coverage``, ``n_failed``, ``footprint_type_a_u_m`` (a footprint fit's type A beyond
+    the thin-beam replicas', drawn as a diameter error), ``systematics``, ``multistart``} or ``None``)}.
     """
     from lrms.budget import cylinder_budget, replica_systematics
     from lrms.cylinder import fit_cylinder
@@ -211,6 +212,7 @@ def cylinder_result(
             "std_m": float(m.std),
             "coverage": float(m.coverage),
             "n_failed": int(m.n_failed),
+            "footprint_type_a_u_m": float(m.footprint_type_a_u),
             "systematics": bool(line_of_sight),
             "multistart": bool(line_of_sight),
         }

@@ -132,7 +132,9 @@ def calibrate(
             except CalibrationError as exc:
                 raise type(exc)(f"sweep {k + 1}: {exc}") from None
         offsets = np.cumsum([0, *(len(s) for s in sweeps)])[:-1]
-        planes, spheres, initial = merge([f[0] for f in found], [f[1] for f in found], [int(o) for o in offsets])
+        planes, spheres, initial = merge(
+            [f[0] for f in found], [f[1] for f in found], [int(o) for o in offsets], artefact=artefact
+        )
     else:
         planes, spheres = _detect(obs, artefact, nom, opts.detect)
         initial = None

@@ -8,7 +8,9 @@ all its spheres, and the transform under which most spheres land on a sphere of 
 diameter (least rms on a tie) is the sweep's initial pose; its spheres take the identities of
 the first sweep's they land on; a sphere of an artefact index no earlier sweep found joins the
 world's spheres, placed by the sweep's initial pose (a far sphere lost in the first sweep's nominal
-cloud is still used: docs/calibration.md, "A lost far sphere"). Its planes
+cloud is still used: docs/calibration.md, "A lost far sphere"), unless it could be a second copy
+of a world sphere (:func:`_may_join`): its index can be a guess (spheres of equal diameter the
+centre distances did not tell apart go in the found order), so its place is checked instead. Its planes
 are then moved into the world and merged with a world plane of the same orientation (within
 ``angle_deg``) and offset (within ``tolerance_m`` x 2), or added as a new one. The adjustment
 (:class:`lrms.calibration.adjust.Adjustment` with ``which`` and ``poses``) refines the poses with
@@ -23,7 +25,7 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from lrms.calibration.data import CalibrationError
+from lrms.calibration.data import Artefact, CalibrationError
 from lrms.calibration.detect import PlaneSeg, SphereSeg
 
 FloatArray = NDArray[np.float64]
@@ -32,6 +34,10 @@ IntArray = NDArray[np.intp]
 
 class RegistrationError(CalibrationError):
     """A sweep could not be placed relative to the first (too few common spheres)."""
+
+
+#: Growth of the registration tolerance per metre of distance (:func:`match_spheres`'s default).
+RANGE_TOLERANCE = 0.01
 
 
 def kabsch(a: FloatArray, b: FloatArray) -> FloatArray:
@@ -51,7 +57,7 @@ def match_spheres(
     other: Sequence[SphereSeg],
     tolerance_m: float = 0.1,
     min_spread_m: float = 0.1,
-    range_tolerance: float = 0.01,
+    range_tolerance: float = RANGE_TOLERANCE,
 ) -> tuple[FloatArray, dict[int, int]]:
     """The initial pose (4x4, ``other``'s frame into ``ref``'s) and the matches ``{other position:
     ref position}``. Raises :class:`RegistrationError` without three common spheres off a line.
@@ -103,16 +109,56 @@ def match_spheres(
     return t, pairs
 
 
+def _may_join(
+    world: Sequence[SphereSeg],
+    new: SphereSeg,
+    artefact: Artefact | None,
+    tolerance_m: float,
+    range_tolerance: float = RANGE_TOLERANCE,
+) -> bool:
+    """Whether ``new`` (a later sweep's sphere no world sphere matched, its centre in the world
+    frame) may join the ``world`` spheres as another physical sphere.
+
+    Its artefact index can be a guess (:func:`lrms.calibration.detect._assign_pairwise` gives
+    spheres of equal diameter that no distance told apart in the found order), so it is checked by
+    place: it must not overlap a world sphere (two spheres' centres are at least the sum of their
+    radii apart; one nearer is the same sphere seen again, off by the initial pose); with the
+    ``artefact``, its index one of the artefact's spheres of its diameter and every artefact
+    distance from its index to a world sphere's index met within ``tolerance_m`` plus
+    ``range_tolerance`` per metre."""
+    for w in world:
+        if float(np.linalg.norm(w.center - new.center)) < w.radius + new.radius:
+            return False
+    if artefact is None:
+        return True
+    same = [k for k, sp in enumerate(artefact.spheres) if np.isclose(sp.diameter_m, 2 * new.radius)]
+    if new.artefact_index not in same:
+        return False
+    at = {w.artefact_index: w for w in world}
+    for d in artefact.distances:
+        if new.artefact_index not in (d.a, d.b):
+            continue
+        other = at.get(d.b if d.a == new.artefact_index else d.a)
+        if other is None:
+            continue
+        err = abs(float(np.linalg.norm(other.center - new.center)) - d.distance_m)
+        if err > tolerance_m + range_tolerance * d.distance_m:
+            return False
+    return True
+
+
 def merge(
     planes: Sequence[Sequence[PlaneSeg]],
     spheres: Sequence[Sequence[SphereSeg]],
     offsets: Sequence[int],
     tolerance_m: float = 0.1,
     angle_deg: float = 5.0,
+    artefact: Artefact | None = None,
 ) -> tuple[list[PlaneSeg], list[SphereSeg], list[FloatArray]]:
     """World surfaces (beam indices into the concatenated sweeps, ``offsets`` = each sweep's first
     beam) and each sweep's initial pose, from the surfaces detected per sweep (see the module
-    docstring)."""
+    docstring). ``artefact``: the spheres' diameters and distances, which a sphere joining from a
+    later sweep must agree with (:func:`_may_join`; without it, only its place is checked)."""
     poses = [np.eye(4)]
     ref = list(spheres[0])
     members: dict[int, list[IntArray]] = {k: [s.index + offsets[0]] for k, s in enumerate(ref)}
@@ -126,12 +172,15 @@ def merge(
             members[j].append(spheres[k][i].index + offsets[k])
         # a sphere this sweep found and no earlier one did (e.g. one far out on the first pose's
         # shaft, lost in its nominal cloud: docs/calibration.md, "A lost far sphere") joins the
-        # world's, placed by this sweep's initial pose
+        # world's, placed by this sweep's initial pose, if it cannot be a copy of a world sphere
         known = {s.artefact_index for s in ref}
         for i, sp in enumerate(spheres[k]):
-            if i not in pairs and sp.artefact_index not in known:
+            if i in pairs or sp.artefact_index in known:
+                continue
+            moved = SphereSeg(sp.index, t[:3, :3] @ sp.center + t[:3, 3], sp.radius, sp.artefact_index)
+            if _may_join(ref, moved, artefact, tolerance_m):
                 members[len(ref)] = [sp.index + offsets[k]]
-                ref.append(SphereSeg(sp.index, t[:3, :3] @ sp.center + t[:3, 3], sp.radius, sp.artefact_index))
+                ref.append(moved)
                 known.add(sp.artefact_index)
     world_spheres = [
         SphereSeg(np.concatenate(members[j]), s.center, s.radius, s.artefact_index) for j, s in enumerate(ref)

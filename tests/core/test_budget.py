@@ -186,6 +186,12 @@ def test_temperature_edge_model_and_extra_rows(sweep_fit: tuple[CylinderFit, np.
         "footprint / edge model"
     )
     assert row.u_m == 0.0 and "1.020 +- 0.040" in row.note and "type A" in row.note
+    # the thin beam won the footprint fit's model choice: no spot in the fit, and the note says so
+    won = dataclasses.replace(fit, extra={**fit.extra, "edge_model_u_m": 0.0, "edge_mode_first": -1.0})
+    row = cylinder_budget(won, rays.subset(fit.inliers), beams.subset(fit.inliers), noise=NM).row(
+        "footprint / edge model"
+    )
+    assert row.u_m == 0.0 and "thin beam won" in row.note and "nominal value" not in row.note
 
 
 def test_calibration_row_keeps_correlations_and_replaces_the_uncalibrated_rows(

@@ -18,6 +18,7 @@ from lrms.calibration import (
     RegistrationError,
     calibrate,
 )
+from lrms.calibration.data import DistanceSpec, SphereSpec
 from lrms.calibration.detect import SphereSeg
 from lrms.calibration.poses import kabsch, match_spheres, merge
 from sim.scene import SensorModel, continuous_sweep_cloud, get_scene
@@ -202,3 +203,34 @@ def test_a_sphere_the_first_sweep_lost_joins_from_a_later_one() -> None:
     np.testing.assert_allclose(s0.center, centres[0], atol=1e-9)
     np.testing.assert_array_equal(np.sort(s0.index), [100, 101, 102, 103, 104, 200, 201])
     np.testing.assert_allclose(poses[1], t, atol=1e-9)
+
+
+def test_a_later_sweeps_sphere_of_a_guessed_index_joins_only_where_it_can_be_another_sphere() -> None:
+    """An unmatched sphere of a later sweep whose artefact index is new may be a known sphere
+    mislabelled (equal diameters no distance told apart go in the found order) and seen off by the
+    initial pose: it does not join where it overlaps a world sphere, nor, with the artefact, where
+    its index is no sphere of its diameter or a distance from its index disagrees."""
+    centres = np.array([[0.0, 9.0, 0.0], [0.0, 1.0, 0.6], [-3.3, 3.0, 0.3], [2.3, 3.5, 0.0]])
+    t = pose((0.0, 10.2, 0.45), 180.0, 1.0)
+    first = [SphereSeg(np.arange(3) + 3 * i, centres[i], 0.25, i) for i in range(4)]
+
+    def second(extra_centre: np.ndarray, label: int) -> list[SphereSeg]:
+        seen = (np.vstack([centres[:3], extra_centre]) - t[:3, 3]) @ t[:3, :3]
+        return [SphereSeg(np.arange(5) + 5 * i, seen[i], 0.25, i if i < 3 else label) for i in range(4)]
+
+    def joined(extra_centre: np.ndarray, label: int, artefact: Artefact | None) -> bool:
+        _, spheres, _ = merge([[], []], [first, second(extra_centre, label)], [0, 100], artefact=artefact)
+        return len(spheres) == 5
+
+    # sphere 3 seen 0.2 m off (beyond the 0.14 m the match allows there), labelled 4: a second copy
+    copy = centres[3] + [0.2, 0.0, 0.0]
+    assert not joined(copy, 4, None)
+    five = Artefact(spheres=tuple(SphereSpec(0.5) for _ in range(5)), distances=(DistanceSpec(4, 1, 2.0),))
+    assert not joined(copy, 4, five)
+    # a sphere 2.0 m from sphere 1, as the artefact's distance says: joins; 3.0 m from it: does not
+    far = centres[1] + [2.0, 0.0, 0.0]
+    assert joined(far, 4, None) and joined(far, 4, five)
+    assert not joined(centres[1] + [3.0, 0.0, 0.0], 4, five)
+    # an artefact whose sphere 4 is of another diameter: no sphere of this one is left to join as
+    other = Artefact(spheres=(*(SphereSpec(0.5) for _ in range(4)), SphereSpec(0.3)))
+    assert not joined(far, 4, other)
