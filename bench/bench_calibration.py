@@ -405,8 +405,13 @@ def print_tables(errs: dict[str, list[float]], stds: dict[str, list[float]], row
             f"  {name:11s} {unit:4s} {np.sqrt(np.mean(ea**2)):9.4f} {np.max(np.abs(ea)):9.4f} {np.mean(sa):9.4f} "
             f"{100 * inside:7.0f}% {goal:7.3g}  {ok}"
         )
-    r = np.asarray(rows)
-    print("\nseed 003 part (137.5 mm, noiseless sweep) against the ideal-rig fit, before / after calibration:")
+    everything = np.asarray(rows)
+    # the part's rows of the runs that measured it (``--no-part`` runs hold nan diameters, no axis)
+    r = everything[np.isfinite(everything[:, 0])]
+    print(
+        "\nseed 003 part (137.5 mm, noiseless sweep) against the ideal-rig fit, before / after calibration"
+        f" ({r.shape[0]} of {everything.shape[0]} runs measured it):"
+    )
     print(f"  {'':24s} {'before':>12s} {'after':>12s} {'goal':>8s}")
     print(f"  {'diameter rms (mm)':24s} {1e3 * np.sqrt(np.mean(r[:, 0] ** 2)):12.3f} "
           f"{1e3 * np.sqrt(np.mean(r[:, 2] ** 2)):12.3f} {0.1:8.2f}")  # fmt: skip
@@ -415,7 +420,7 @@ def print_tables(errs: dict[str, list[float]], stds: dict[str, list[float]], row
     print(f"  {'axis rms (deg)':24s} {np.sqrt(np.mean(r[:, 1] ** 2)):12.4f} {np.sqrt(np.mean(r[:, 3] ** 2)):12.4f} "
           f"{0.02:8.3f}")  # fmt: skip
     print(f"  {'axis max (deg)':24s} {np.max(r[:, 1]):12.4f} {np.max(r[:, 3]):12.4f} {0.02:8.3f}")
-    print(f"  variance factor of the calibrations: {np.min(r[:, 4]):.3f} .. {np.max(r[:, 4]):.3f}")
+    print(f"  variance factor of the calibrations: {np.min(everything[:, 4]):.3f} .. {np.max(everything[:, 4]):.3f}")
 
 
 def combine(files: list[str]) -> int:
