@@ -289,18 +289,52 @@ def test_the_first_hit_jacobian_matches_differences_through_the_newton_solve(spo
     rays = rays_from_points(scene_pts)
     frame = _Frame.at(TRUTH.with_point_near(scene_pts.mean(axis=0)))
     optics = BeamOptics(share_u=0.03)
-    # spot 1.2 x nominal (at 1.1 one beam of this cloud, whose F is just steeper than the flat cut
-    # of 1 per metre, gets a row 47x off in the radius's column: the implicit step's known limit)
-    theta = np.array([2e-4, -3e-4, 1e-3, -5e-4, 8e-4, float(logit(0.27))] + ([float(np.log(1.2))] if spot_free else []))
+    # spot 1.1 x nominal: one beam of this cloud, on the front's centre, has its first hit just past
+    # a node's tip (F's square-root onset); the linear implicit step made its radius row 47x too large
+    # until such beams were re-solved per column
+    theta = np.array([2e-4, -3e-4, 1e-3, -5e-4, 8e-4, float(logit(0.27))] + ([float(np.log(1.1))] if spot_free else []))
     jac = _first_jacobian(theta, frame, rays, optics)
+    # absolute steps as the Jacobian's (a relative step of 1e-6 is 2e-10 on an angle of 2e-4: the
+    # Newton tolerance of 1e-11 m then reads as a few units of noise in the rows)
+    steps = np.array([1e-6] * 5 + [1e-4] * (theta.size - 5))
     ref = approx_derivative(
-        lambda th: _residuals(th, frame, rays, optics, "first"), theta, method="3-point", rel_step=1e-6
+        lambda th: _residuals(th, frame, rays, optics, "first"), theta, method="3-point", abs_step=steps
     )
     assert jac.shape == ref.shape
-    # columns agree to 3 % of their norm (measured 0.3-2 %: a beam covered by just about tau, where
-    # the target min(tau, c) has a kink and the slope dT/dshare is steep, differs most)
+    # the geometry and threshold columns agree to 0.3 % of their norm and per row to 2 % of the
+    # column's largest entry (measured: 0.03 % / 0.7 %); the spot's column, a forward difference
+    # of 1e-4 in its log, to 5 % (measured 1.5 %)
     for j in range(theta.size):
-        assert np.linalg.norm(jac[:, j] - ref[:, j]) <= 0.03 * np.linalg.norm(ref[:, j])
+        tol = 0.003 if j < 6 else 0.05
+        assert np.linalg.norm(jac[:, j] - ref[:, j]) <= tol * np.linalg.norm(ref[:, j]), j
+        if j < 6:
+            assert np.max(np.abs(jac[:, j] - ref[:, j])) <= 0.02 * np.max(np.abs(ref[:, j])), j
+
+
+def test_the_first_hit_slope_includes_the_spots_growth_with_range() -> None:
+    """``dF/dT`` of :func:`_first_share` (Newton's slope and the implicit step's divisor) against
+    central differences of ``F`` in ``T``: the spot widens with ``T`` on the part's near side, a term
+    once left out (3-7 % off on limb beams, more where F is nearly flat). Beams flagged near the
+    front's tip (F's kink) are left out, as in the partials' test below."""
+    from lrms.cylinder.footprint import _first_share, _first_share_grad
+
+    rng = np.random.default_rng(0)
+    n, r, s0, sd = 3000, 0.069, 0.25 * 0.008, 0.25 * 0.015
+    t_ca = 2.5 + rng.normal(0.0, 0.01, n)
+    x0 = rng.uniform(-0.11, 0.11, n)
+    cos_axis = rng.uniform(-0.3, 0.3, n)
+    big_t = t_ca - r / np.sqrt(1.0 - cos_axis**2) * rng.uniform(-0.2, 1.1, n)
+    _, fp = _first_share(big_t, x0, t_ca, cos_axis, r, s0, sd)
+    _, fp_grad, _, near = _first_share_grad(big_t, x0, t_ca, cos_axis, r, s0, sd)
+    h = 1e-7
+    num = (
+        _first_share(big_t + h, x0, t_ca, cos_axis, r, s0, sd)[0]
+        - _first_share(big_t - h, x0, t_ca, cos_axis, r, s0, sd)[0]
+    ) / (2 * h)
+    ok = ~near & (np.abs(num) > 1.0)
+    assert np.count_nonzero(ok) > 500
+    assert np.max(np.abs(fp[ok] - num[ok]) / np.abs(num[ok])) < 1e-5
+    assert np.allclose(fp, fp_grad, rtol=1e-12, atol=1e-9)
 
 
 def test_the_first_hit_shares_partials_match_its_differences_away_from_the_fronts_tip() -> None:
@@ -387,11 +421,12 @@ def test_the_first_hit_memory_reuses_only_the_same_parameters_and_its_jacobian_m
     assert np.max(np.abs(got - cold)) < 1e-9
     assert np.max(np.abs(got - stored)) > 1e-4
     jac = _first_jacobian(theta, frame, rays, optics, warm)
+    steps = np.array([1e-6] * 5 + [1e-4])  # the Jacobian's own (absolute) steps
     ref = approx_derivative(
-        lambda th: _residuals(th, frame, rays, optics, "first"), theta, method="3-point", rel_step=1e-6
+        lambda th: _residuals(th, frame, rays, optics, "first"), theta, method="3-point", abs_step=steps
     )
     for j in range(theta.size):
-        assert np.linalg.norm(jac[:, j] - ref[:, j]) <= 0.03 * np.linalg.norm(ref[:, j])
+        assert np.linalg.norm(jac[:, j] - ref[:, j]) <= 0.003 * np.linalg.norm(ref[:, j]), j  # measured < 0.05 %
 
 
 def test_the_thin_beams_criterion_on_a_subsample_counts_its_miss_rows_too() -> None:
@@ -449,7 +484,9 @@ def test_the_first_hit_multi_start_leaves_a_small_local_minimum_of_the_radius_ta
     (single,) = _fit_families(frame, rays, optics, ("first",), {"first": bad}, 4.0)
     d_single = 2.0 * float(frame.unpack(single.theta[:5])[2])
     print(f"single start: {(d_single - SEED003_DIAMETER) * 1e3:+.2f} mm")
-    assert d_single - SEED003_DIAMETER < -0.006  # measured -8.3 mm (from -35 mm: -9.6, then -5.5 with k-d tree normals)
+    # measured -8.3 mm (from -35 mm: -9.6, then -5.5 with k-d tree normals); -7.2 mm since round 8's
+    # Jacobian fix (docs/cylinder.md, section 7)
+    assert d_single - SEED003_DIAMETER < -0.006
     # the silhouette start of tau 0.5 (the cheapest of the three here) against the small minimum
     good = _first_starts(frame, optics, None)[-1]
     (multi,) = _fit_families(frame, rays, optics, ("first",), {"first": bad}, 4.0, [single.theta, good])
@@ -457,7 +494,9 @@ def test_the_first_hit_multi_start_leaves_a_small_local_minimum_of_the_radius_ta
     assert abs(d_multi - SEED003_DIAMETER) < 0.004  # measured -3.0 mm
     crit_single = _aics([single], frame, rays, optics, 4.0)["first"]
     crit_multi = _aics([multi], frame, rays, optics, 4.0)["first"]
-    assert crit_multi < crit_single - 5.0  # measured 14 lower
+    # measured 14 lower; 3.6 since round 8 (the corrected Jacobian takes the single start further
+    # down the ridge, to -7.2 mm from -24 mm on this tree before the fix)
+    assert crit_multi < crit_single - 2.0
 
 
 def test_the_energy_weighted_fit_models_the_spots_end_noiseless() -> None:
@@ -488,9 +527,13 @@ def test_the_first_hit_u_is_the_profile_likelihood_interval_and_covers_a_flat_va
     radius held and tau refitted it rises steeply on one side and slowly on the other. The
     Jacobian's u sees only the curvature at the minimum; the profile-likelihood interval (its
     crossing of Delta = 4 x chi2/dof searched for on each side) reaches far out on the flat side,
-    and its larger half-width over k is the fit's u. This cloud (seed 4, with the detection of the
-    session of 2026-11-24): error -3.5 mm, the truth on the flat side; J^T J's u 0.51 mm (U 1.1 mm
-    with the edge rows: not covered), the interval -1.8 / +10.8 mm (U 10.8 mm: covered)."""
+    and its larger half-width over k is the fit's u. This cloud (seed 4) until round 8: error
+    -3.5 mm, the truth on the flat side; J^T J's u 0.51 mm (U 1.1 mm with the edge rows: not
+    covered), the interval -1.8 / +10.8 mm (U 10.8 mm: covered). Since round 8's Jacobian fix
+    (docs/cylinder.md, section 7) the fit lands at +0.05 mm with an interval of -5.5 / +5.1 mm and
+    J^T J's u no longer falls short on seeds 4-8, 10-13 of this cloud (none lopsided with the truth out of
+    J^T J's reach), so the lopsided case is no longer asserted; the interval's mechanics and the
+    coverage are."""
     pts = footprint_sweep(0.1, "first", 4)
     fit = fit_cylinder(
         pts, rng=np.random.default_rng(0), optics=BeamOptics(), diameter_range=nominal_diameter_range(SEED003_DIAMETER)
@@ -505,16 +548,8 @@ def test_the_first_hit_u_is_the_profile_likelihood_interval_and_covers_a_flat_va
     assert x["footprint_u_profile_m"] == pytest.approx(max(-lo, hi) / 2.0, rel=1e-9)
     assert fit.std_diameter == pytest.approx(max(x["footprint_u_jtj_m"], x["footprint_u_profile_m"]), rel=1e-6)
     edge = x["edge_model_u_m"] ** 2 + x["edge_family_u_m"] ** 2
-    # the case this test is about (a precondition, not a goal): a lopsided valley with the truth on
-    # its flat side, out of reach of the Jacobian's u; if a change of the fit lands elsewhere, pick
-    # another cloud
-    flat_above = hi > -lo
-    assert max(-lo, hi) > 1.4 * min(-lo, hi), f"precondition: not lopsided ({lo * 1e3:+.2f}, {hi * 1e3:+.2f} mm)"
-    assert (err < 0) == flat_above, f"precondition: the truth is not on the flat side (error {err * 1e3:+.2f} mm)"
-    u_jtj = float(np.sqrt(x["footprint_u_jtj_m"] ** 2 + edge))
-    assert abs(err) > 2.0 * u_jtj, f"precondition: J^T J's U {2e3 * u_jtj:.2f} mm covers already"
     u = float(np.sqrt(fit.std_diameter**2 + edge))
-    assert abs(err) <= 2.0 * u  # measured U = 10.8 mm for an error of -3.5 mm
+    assert abs(err) <= 2.0 * u  # measured U = 5.5 mm for an error of +0.05 mm (round 8)
 
 
 def test_the_energy_weighted_echo_stays_continuous_where_the_spot_leaves_the_part() -> None:
