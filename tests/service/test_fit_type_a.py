@@ -32,57 +32,26 @@ deviation, RMS and RMS(error / ``std_m``); 25 s).
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
-import numpy as np
 import pytest
 
+from bench.bias_miss_rows import offline_sweep as bench_offline_sweep
 from lrms.cylinder import pipeline
 from service import fitting
 from service.config import load_config
 from service.models import MeasurementRequest
 from service.sweep import MappedSweep
-from sim.scene import get_scene, make_sensor
-from sim.scene.sensor import continuous_sweep_cloud
 
 TRUE_D = 0.1375
-SPEED = math.radians(20.0)
 #: the diameters' scatter over 40 such sweeps (seeds 3-42), re-measured after the bias change (see
 #: the module docstring; 0.445 mm on the code of the first measurement, 0.484 mm after the fixes)
 SCATTER_M = 0.442e-3
 
 
 def offline_sweep(seed: int) -> MappedSweep:
-    """The default rig's constant-speed cylinder sweep, each beam at its true motor angle."""
-    config = load_config(None)
-    cal = config.calibration
-    rng = np.random.default_rng(seed)
-    phase = rng.uniform(0.0, SPEED / 25.0)  # where the first scan falls: random, as on the rig
-    start, stop = float(cal.motor_angle(math.radians(-20.0))), float(cal.motor_angle(math.radians(70.0)))
-    _, s = continuous_sweep_cloud(get_scene("seed003"), cal, make_sensor("ideal"), start + phase, stop, SPEED, rng)
-    valid = s.valid
-    ranges = s.ranges[valid]
-    alpha = cal.alpha(np.broadcast_to(s.device_angle, valid.shape)[valid])
-    beta = cal.beta(s.motor_angle[valid])
-    scans = np.broadcast_to(np.arange(valid.shape[0])[:, None], valid.shape)[valid]
-    speed = np.full(ranges.shape, SPEED)
-    return MappedSweep(
-        points=cal.rig.forward(ranges, alpha, beta, speed),
-        ranges=ranges,
-        alpha=alpha,
-        beta=beta,
-        scan_index=scans.astype(np.int64),
-        beam_time_s=np.zeros(ranges.shape),
-        t_ref_ns=0,
-        beams_total=int(valid.size),
-        beams_no_echo=int(np.count_nonzero(~valid)),
-        beams_out_of_range=0,
-        beams_without_motor=0,
-        beams_outside_sweep=0,
-        motor_speed=speed,
-        rig=cal.rig,
-    )
+    """The default rig's constant-speed cylinder sweep (-20..70 deg), each beam at its true motor angle."""
+    return bench_offline_sweep(seed, -20.0, 70.0)
 
 
 def fit(seed: int) -> dict[str, float]:
