@@ -465,39 +465,21 @@ def _edge_row(fit: CylinderFit) -> BudgetRow:
             "this fit has no edge model (thin-beam model): under a real LMS1xx's footprint it is biased by "
             "tens of mm, which no row here covers (docs/sensor-model.md)",
         )
-    if fit.extra.get("edge_mode_first", 0.0) < 0:
-        return BudgetRow.of(
-            "footprint / edge model",
-            "B",
-            float(u),
-            "m",
-            1.0,
-            "normal",
-            "the thin beam won the model choice (Akaike criterion) over the footprint families: the reported"
-            " fit has no spot, 0 here; the families' spread is the edge family row (fit.extra['edge_model_u_m'])",
-        )
     scale = fit.extra.get("edge_spot_scale")
-    if scale is not None:
-        # estimated by the fit: its uncertainty is in the fit's covariance, not carried again here
-        return BudgetRow.of(
-            "footprint / edge model",
-            "B",
-            float(u),
-            "m",
-            1.0,
-            "normal",
-            f"the spot's size estimated by the fit, {float(scale):.3f} +- {float(fit.extra['edge_spot_scale_u']):.3f}"
-            " x the nominal (the nominal a prior): in the fit's type A row, 0 here (fit.extra['edge_model_u_m'])",
+    if fit.extra.get("edge_mode_first", 0.0) < 0:
+        note = (
+            "the thin beam won the model choice (Akaike criterion) over the footprint families: the reported"
+            " fit has no spot, 0 here; the families' spread is the edge family row (fit.extra['edge_model_u_m'])"
         )
-    return BudgetRow.of(
-        "footprint / edge model",
-        "B",
-        float(u),
-        "m",
-        1.0,
-        "normal",
-        "the spot's size held at its nominal value, carried with its uncertainty (fit.extra['edge_model_u_m'])",
-    )
+    elif scale is not None:
+        # estimated by the fit: its uncertainty is in the fit's covariance, not carried again here
+        note = (
+            f"the spot's size estimated by the fit, {float(scale):.3f} +- {float(fit.extra['edge_spot_scale_u']):.3f}"
+            " x the nominal (the nominal a prior): in the fit's type A row, 0 here (fit.extra['edge_model_u_m'])"
+        )
+    else:
+        note = "the spot's size held at its nominal value, carried with its uncertainty (fit.extra['edge_model_u_m'])"
+    return BudgetRow.of("footprint / edge model", "B", float(u), "m", 1.0, "normal", note)
 
 
 def _family_row(fit: CylinderFit) -> BudgetRow:
