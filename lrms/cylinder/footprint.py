@@ -651,6 +651,11 @@ def footprint_fit(
     else:
         var_prof = _profile_variance(best, frame, optics) * max(1.0, chi2_dof)
     prof_scale = max(1.0, var_prof / max(var_jtj, 1e-30))
+    k_spot = _spot_index(best.mode)
+    free = best.theta.size > k_spot
+    # the spot's own variance before the radius' profile factor: that factor widens the radius (and
+    # the axis point along the ridge), not the spot, whose posterior is held by its prior row
+    var_spot = float(cov_full[k_spot, k_spot]) if free else 0.0
     cov_full = cov_full * prof_scale
     # sensitivity of the solution to the spot size: d theta / d scale = -(J^T J)^-1 J^T d res / d scale
     res_lo = _residuals(best.theta, frame, best.rays, optics, best.mode, scale=0.99)
@@ -659,13 +664,11 @@ def footprint_fit(
     spot_sens = float(2.0 * dtheta[4])
     # a spot held at its nominal size: its uncertainty carried by the sensitivity (the budget's
     # edge row); an estimated spot: in the covariance (type A), the row is 0
-    k_spot = _spot_index(best.mode)
-    free = best.theta.size > k_spot
     u_spot = 0.0 if free else abs(spot_sens) * optics.spot_scale_u
     spot_extra = (
         {
             "edge_spot_scale": _fit_scale(best.theta, best.mode),
-            "edge_spot_scale_u": float(np.sqrt(max(cov_full[k_spot, k_spot], 0.0))) * _fit_scale(best.theta, best.mode),
+            "edge_spot_scale_u": float(np.sqrt(max(var_spot, 0.0))) * _fit_scale(best.theta, best.mode),
         }
         if free
         else {}

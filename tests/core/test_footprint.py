@@ -613,3 +613,20 @@ def test_the_energy_weighted_echo_weighs_each_sub_ray_at_its_own_hit_point() -> 
         e = np.where(hit, pdf * cos / np.square(t), 0.0)
         t_ref = float(np.sum(e * t) / np.sum(e))
         assert abs(t_model[i] - t_ref) < 2e-5, (z[i], (t_model[i] - t_ref) * 1e3)
+
+
+def test_the_first_hit_spot_scale_is_not_less_certain_than_its_prior() -> None:
+    """The radius' profile factor (the first hit's flat (radius, tau) ridge) widens the radius and
+    the axis, not the estimated spot scale: its u stays within the prior's (0.15 of the nominal).
+    Seed 8's 30 % first-hit sweep: profile factor 10.3, spot 1.037 +- 0.126 (scaled by the factor
+    it read 0.494 +- 3x its prior)."""
+    pts = footprint_sweep(0.3, "first", 8)
+    fit = fit_cylinder(
+        pts,
+        rng=np.random.default_rng(0),
+        optics=BeamOptics(),
+        diameter_range=nominal_diameter_range(SEED003_DIAMETER),
+    )
+    x = fit.extra
+    assert x["edge_mode_first"] == 1.0 and x["footprint_profile_scale"] > 2.0, x
+    assert 0.0 < x["edge_spot_scale_u"] <= BeamOptics().spot_scale_u * x["edge_spot_scale"], x
