@@ -131,12 +131,31 @@ class LosProblem:
         lin, _ = self._evaluate(cyl, False, frame, dense=False)
         state: _State = lin.state  # type: ignore[assignment]
         r, v1, v2, vw, ue1, ue2, uw, aa, t, hit, _, _ = state
+        jr, jm, miss, _, _, _ = self._range_part(r, v1, v2, vw, ue1, ue2, uw, aa, t, hit)
+        jr[:, miss] = jm
+        return jr
+
+    def _range_part(
+        self,
+        r: float,
+        v1: FloatArray,
+        v2: FloatArray,
+        vw: FloatArray,
+        ue1: FloatArray,
+        ue2: FloatArray,
+        uw: FloatArray,
+        aa: FloatArray,
+        t: FloatArray,
+        hit: NDArray[np.bool_],
+    ) -> tuple[FloatArray, FloatArray, NDArray[np.intp], FloatArray, FloatArray, FloatArray]:
+        """The range rows ``(5, N)`` of the hits (0 on the misses), the misses' closest-approach rows
+        ``(5, M)``, the misses' indices, and the beams' ``q1, q2, h``."""
         q1 = v1 + t * ue1
         q2 = v2 + t * ue2
         h = vw + t * uw
         qu = q1 * ue1 + q2 * ue2
         safe_qu = np.where(np.abs(qu) > 1e-300, qu, 1e-300)
-        f = np.where(hit, -self.isl / safe_qu, 0.0)
+        f = np.where(hit, -self.isl / safe_qu, 0.0)  # hit rows: J = -dt / sigma_l, dt = (h q1, h q2, q1, q2, r) / qu
         jr = np.empty((5, t.shape[0]))
         jr[2] = q1 * f
         jr[3] = q2 * f
@@ -144,15 +163,16 @@ class LosProblem:
         jr[1] = h * jr[3]
         jr[4] = r * f
         miss = np.flatnonzero(~hit)
-        if miss.size:
-            hm, q1m, q2m, uwm = h[miss], q1[miss], q2[miss], uw[miss]
-            g = self.isl[miss] / aa[miss]
-            jr[0, miss] = -(q1m * uwm + hm * ue1[miss]) * g
-            jr[1, miss] = -(q2m * uwm + hm * ue2[miss]) * g
-            jr[2, miss] = -ue1[miss] * g
-            jr[3, miss] = -ue2[miss] * g
-            jr[4, miss] = 0.0
-        return jr
+        # closest approach: dt = -dH / A, H = q.u; the miss distance by the envelope theorem
+        hm, q1m, q2m, uwm = h[miss], q1[miss], q2[miss], uw[miss]
+        g = self.isl[miss] / aa[miss]  # J = -dt / sigma_l = dH / (A sigma_l)
+        jm = np.empty((5, miss.size))
+        jm[0] = -(q1m * uwm + hm * ue1[miss]) * g
+        jm[1] = -(q2m * uwm + hm * ue2[miss]) * g
+        jm[2] = -ue1[miss] * g
+        jm[3] = -ue2[miss] * g
+        jm[4] = 0.0
+        return jr, jm, miss, q1, q2, h
 
     def _evaluate(
         self, cyl: Cylinder, jacobian: bool, frame: tuple[FloatArray, FloatArray] | None, dense: bool
@@ -202,32 +222,12 @@ class LosProblem:
         res_g: FloatArray,
         dense: bool,
     ) -> tuple[Linearised, FloatArray | None]:
-        q1 = v1 + t * ue1
-        q2 = v2 + t * ue2
-        h = vw + t * uw
-        qu = q1 * ue1 + q2 * ue2
-        safe_qu = np.where(np.abs(qu) > 1e-300, qu, 1e-300)
-        f = np.where(hit, -self.isl / safe_qu, 0.0)  # hit rows: J = -dt / sigma_l, dt = (h q1, h q2, q1, q2, r) / qu
-        jr = np.empty((5, t.shape[0]))
-        jr[2] = q1 * f
-        jr[3] = q2 * f
-        jr[0] = h * jr[2]
-        jr[1] = h * jr[3]
-        jr[4] = r * f
+        jr, jm, miss, q1, q2, h = self._range_part(r, v1, v2, vw, ue1, ue2, uw, aa, t, hit)
         normal = jr @ jr.T
         gradient = jr @ res_r
-        miss = np.flatnonzero(~hit)
         full = np.zeros((t.shape[0] * 2, 5)) if dense else None
         if miss.size:
-            # closest approach: dt = -dH / A, H = q.u; the miss distance by the envelope theorem
-            hm, q1m, q2m, uwm = h[miss], q1[miss], q2[miss], uw[miss]
-            g = self.isl[miss] / aa[miss]  # J = -dt / sigma_l = dH / (A sigma_l)
-            jm = np.empty((5, miss.size))
-            jm[0] = -(q1m * uwm + hm * ue1[miss]) * g
-            jm[1] = -(q2m * uwm + hm * ue2[miss]) * g
-            jm[2] = -ue1[miss] * g
-            jm[3] = -ue2[miss] * g
-            jm[4] = 0.0
+            hm, q1m, q2m = h[miss], q1[miss], q2[miss]
             qn = np.maximum(np.sqrt(q1m * q1m + q2m * q2m), 1e-300)
             s = -self.isp[miss] / qn
             jg = np.empty((5, miss.size))
