@@ -74,7 +74,16 @@ def fit(
     ``calibration``: the rig's active calibration (:mod:`service.calstore`); ``mapped`` was mapped
     with it (:func:`rig_kinematics`), the cylinder's beams are its rig model's,
     its covariance is a row of the budget, and ``result["calibration"]`` names it
-    (``{"id", "name", "created"}``; ``None``: the rig's ``[kinematics]`` as configured)."""
+    (``{"id", "name", "created"}``; ``None``: the rig's ``[kinematics]`` as configured).
+
+    Target ``"calibration"``: the rig model adjusted to the whole sweep
+    (:func:`service.calibrating.calibration_result`), no region of interest."""
+    if request.target == "calibration":
+        from service.calibrating import calibration_result
+
+        out = calibration_result(mapped, request, config)
+        out["calibration"] = None if calibration is None else calibration.reference()
+        return out
     keep = select(mapped, request, config)
     n_roi = int(np.count_nonzero(keep))
     if n_roi == 0:

@@ -31,6 +31,9 @@ CRON_FIRINGS_CHECKED = 512
 CRON_HORIZON_S = 8 * 366 * 86400.0
 #: Bounds of any coordinate of a region of interest (world frame, m).
 ROI_LIMIT_M = 1000.0
+#: The most reference spheres and centre distances a calibration artefact may list.
+MAX_ARTEFACT_SPHERES = 100
+MAX_ARTEFACT_DISTANCES = 1000
 
 
 class _Strict(BaseModel):
@@ -111,6 +114,95 @@ class FitOptions(_Strict):
         return self
 
 
+class SphereIn(_Strict):
+    """A reference sphere of a calibration artefact: its calibrated diameter and that diameter's
+    standard uncertainty (m)."""
+
+    diameter_m: float = Field(gt=0.0, le=10.0)
+    u_diameter_m: float = Field(default=5e-6, gt=0.0, le=0.01)
+
+
+class DistanceIn(_Strict):
+    """A known centre-to-centre distance between spheres ``a`` and ``b`` (indices into ``spheres``)."""
+
+    a: int = Field(ge=0, le=MAX_ARTEFACT_SPHERES - 1)
+    b: int = Field(ge=0, le=MAX_ARTEFACT_SPHERES - 1)
+    distance_m: float = Field(gt=0.0, le=100.0)
+    u_distance_m: float = Field(default=1e-5, gt=0.0, le=0.01)
+
+
+class ArtefactIn(_Strict):
+    """What a calibration sweep sees (``lrms calibrate --artefact``'s JSON): the planes of the room,
+    reference spheres of known diameters at unknown positions, known centre distances."""
+
+    planes: bool = True
+    spheres: list[SphereIn] = Field(default_factory=list, max_length=MAX_ARTEFACT_SPHERES)
+    distances_m: list[DistanceIn] = Field(default_factory=list, max_length=MAX_ARTEFACT_DISTANCES)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ArtefactIn:
+        from lrms.calibration.data import Artefact, ArtefactError
+
+        try:
+            Artefact.from_dict(self.model_dump())
+        except ArtefactError as exc:
+            raise ValueError(str(exc)) from None
+        return self
+
+
+class CalibrationSpec(_Strict):
+    """How a calibration sweep's data is adjusted, and what happens to the calibration."""
+
+    artefact: ArtefactIn
+    optics: Literal["ideal", "lms1xx"] = Field(
+        default="ideal",
+        description="the scanner's beam: 'ideal' (thin) or 'lms1xx' (8 mm + 15 mrad spot: the spot scale is "
+        "estimated from the reference spheres)",
+    )
+    plane_points: int = Field(
+        default=20000, ge=100, le=1_000_000, description="beams per plane the adjustment uses (a random subset)"
+    )
+    name: str = Field(default="", max_length=200, description="the stored calibration's name")
+    comment: str = Field(default="", max_length=2000, description="the stored calibration's comment")
+    activate: bool = Field(default=False, description="make the calibration the rig's active one when it is stored")
+
+
+#: A calibration sweep's defaults where the request leaves them out: the half turn in front of the
+#: rig at 20 deg/s (docs/calibration.md, "How to place the artefacts"), not the rig's ``[sweep]``.
+CALIBRATION_SWEEP_DEFAULTS: dict[str, Any] = {
+    "start_deg": -90.0,
+    "stop_deg": 90.0,
+    "speed_deg_s": 20.0,
+    "mode": "constant",
+}
+
+
+class CalibrationRequest(CalibrationSpec):
+    """``POST /api/v1/calibrations``: run a calibration sweep on the rig and adjust the rig model
+    to it (``lrms calibrate`` in the service)."""
+
+    sweep: SweepSpec = Field(
+        default_factory=SweepSpec,
+        description="the sweep; missing fields: -90..90 deg at 20 deg/s, constant speed (not the rig's [sweep])",
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _not_an_upload(cls, data: Any) -> Any:
+        if isinstance(data, dict) and "schema" in data and "artefact" not in data:
+            raise ValueError(
+                "this is a calibration's JSON (lrms calibrate --out): upload it with POST /api/v1/calibrations/upload;"
+                " POST /api/v1/calibrations runs a calibration sweep on the rig"
+            )
+        return data
+
+    def measurement(self) -> MeasurementRequest:
+        """The job's request: target 'calibration' with the sweep's defaults filled in."""
+        sweep = {**CALIBRATION_SWEEP_DEFAULTS, **self.sweep.model_dump(exclude_none=True)}
+        spec = CalibrationSpec.model_validate(self.model_dump(exclude={"sweep"}))
+        return MeasurementRequest(target="calibration", sweep=SweepSpec(**sweep), calibration=spec)
+
+
 #: Names of recipes (and part ids): letters, digits, ``_`` and ``-`` (no ``.``: ``/recipes/{name}.toml``).
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$"
 PART_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.:/-]{0,127}$"
@@ -125,8 +217,10 @@ class MeasurementRequest(_Strict):
     ``part_id`` and optionally the part's temperature and the operator). The API expands a recipe
     into the free-form fields before the request is stored, with ``recipe_version`` pinned."""
 
-    target: Literal["cylinder", "elbow"] | None = Field(
-        default=None, description="the model to fit; required unless a recipe is named"
+    target: Literal["cylinder", "elbow", "calibration"] | None = Field(
+        default=None,
+        description="the model to fit; required unless a recipe is named ('calibration': a calibration sweep, "
+        "started by POST /api/v1/calibrations only)",
     )
     sweep: SweepSpec = Field(default_factory=SweepSpec)
     roi: RoiSpec | None = None
@@ -147,9 +241,18 @@ class MeasurementRequest(_Strict):
         default=None, ge=0.0, le=500.0, description="standard uncertainty of part_temperature_c (K)"
     )
     operator: str | None = Field(default=None, max_length=200, description="who measured (for the record)")
+    calibration: CalibrationSpec | None = Field(
+        default=None, description="target 'calibration' only: what the calibration sweep sees and how it is adjusted"
+    )
 
     @model_validator(mode="after")
     def _options_fit_target(self) -> MeasurementRequest:
+        if (self.target == "calibration") != (self.calibration is not None):
+            raise ValueError("calibration: given with target 'calibration' and only then")
+        if self.target == "calibration" and (
+            self.recipe is not None or self.roi is not None or self.options != FitOptions()
+        ):
+            raise ValueError("a calibration sweep takes no recipe, roi or options")
         if self.recipe is None:
             part = [f for f in ("recipe_version", "part_id", "part_temperature_c", "operator") if getattr(self, f)]
             if self.temperature_uncertainty_c is not None:
@@ -409,6 +512,12 @@ class ScheduledMeasurement(MeasurementRequest):
         if v is not None:
             render_part_id(v, 0.0, 1)
         return v
+
+    @model_validator(mode="after")
+    def _not_a_calibration(self) -> ScheduledMeasurement:
+        if self.target == "calibration":
+            raise ValueError("a calibration sweep is not scheduled: POST /api/v1/calibrations runs one")
+        return self
 
     def for_run(self, when: float, n: int) -> MeasurementRequest:
         """The measurement request of the schedule's ``n``-th run at ``when``."""

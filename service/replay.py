@@ -159,13 +159,15 @@ class LoggedReadings:
     """The raw readings of a logged sweep's valid beams (inside the sweep's constant-speed window
     and the fit's range limits): range ``l`` (m), scan angle ``alpha`` and plane angle ``beta``
     (rad, the rig's device conventions applied), the motor speed ``omega`` at each beam (rad/s),
-    and the rig model the measurement mapped with."""
+    and the rig model the measurement mapped with; ``sigma_l``: the range noise (m) of the rig's
+    ``[noise]`` when it logged (what the service's calibration sweep adjusts with)."""
 
     l: FloatArray
     alpha: FloatArray
     beta: FloatArray
     omega: FloatArray
     model: RigModel
+    sigma_l: float | None = None
 
 
 def log_readings(path: str | Path) -> LoggedReadings:
@@ -192,7 +194,9 @@ def log_readings(path: str | Path) -> LoggedReadings:
     if not np.all(np.isfinite(vel)):
         vel = np.gradient(pos, ts)
     omega = np.interp(mapped.beam_time_s, ts, vel)
-    return LoggedReadings(mapped.ranges, mapped.alpha, mapped.beta, omega, log.recorder.calibration.rig)
+    return LoggedReadings(
+        mapped.ranges, mapped.alpha, mapped.beta, omega, log.recorder.calibration.rig, float(cfg.noise.si()["sigma_l"])
+    )
 
 
 def logged_calibration(meta: dict[str, Any], path: str | Path | BinaryIO) -> StoredCalibration | None:
@@ -209,8 +213,9 @@ def logged_calibration(meta: dict[str, Any], path: str | Path | BinaryIO) -> Sto
         raise ReplayError(f"{path}: the logged calibration cannot be read: {exc}") from None
 
 
-#: Result fields a replay cannot reproduce (wall time, the live client's counters, the id).
-NOT_REPLAYED = frozenset({"duration_s", "scanner_stats", "measurement_id"})
+#: Result fields a replay cannot reproduce (wall time, the live client's counters, the id, when a
+#: calibration sweep's calibration was computed).
+NOT_REPLAYED = frozenset({"duration_s", "scanner_stats", "measurement_id", "created"})
 
 
 def max_abs_diff(a: Any, b: Any) -> float | None:

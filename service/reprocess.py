@@ -115,7 +115,10 @@ def archived_measurements(
     out = []
     recipes: dict[tuple[str, int], dict[str, Any]] = {}
     for mid, created, request, result, raw_path in rows:
-        if recipe is not None and _json(request).get("recipe") != recipe:
+        req = _json(request)
+        if req.get("target") == "calibration":  # a calibration sweep: no part was measured
+            continue
+        if recipe is not None and req.get("recipe") != recipe:
             continue
         original = _json(result) if result is not None else None
         part, recipe_json, version = _part_of(engine, original, recipes)

@@ -84,7 +84,8 @@ class Identifiability:
     ``held``: parameters held at their nominal values, with the reason and the data that would
     determine them; ``rank`` and ``condition``: of the normal matrix of the rig parameters
     (surfaces eliminated, columns scaled by the parameters' tolerance spreads) over the
-    estimated ones; ``weak``: estimated parameters whose standard deviation exceeds their goal,
+    estimated ones (``inf`` when singular; ``null`` in JSON, which has no infinity); ``weak``:
+    estimated parameters whose standard deviation exceeds their goal,
     with advice; ``eigenvalues``: of the scaled matrix over all non-structural parameters,
     ascending (1 / eigenvalue = variance in units of the spread).
     """
@@ -99,7 +100,7 @@ class Identifiability:
         return {
             "held": dict(self.held),
             "rank": self.rank,
-            "condition": self.condition,
+            "condition": self.condition if np.isfinite(self.condition) else None,
             "weak": dict(self.weak),
             "eigenvalues": list(self.eigenvalues),
         }
@@ -107,7 +108,8 @@ class Identifiability:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Identifiability:
         return cls(
-            dict(d["held"]), int(d["rank"]), float(d["condition"]), dict(d.get("weak", {})),
+            dict(d["held"]), int(d["rank"]), float("inf") if d["condition"] is None else float(d["condition"]),
+            dict(d.get("weak", {})),
             tuple(float(x) for x in d.get("eigenvalues", ())),
         )  # fmt: skip
 

@@ -12,6 +12,7 @@ from typing import Any
 
 from starlette.responses import JSONResponse  # what fastapi.responses re-exports, without FastAPI itself
 
+from service.calibrating import RESULT_KEY, store_calibration
 from service.calstore import CalibrationStore
 from service.config import RigConfig
 from service.jobs import JobContext, JobRunner, MeasureFn, Metrics, ProgressHub
@@ -101,6 +102,11 @@ class Service:
         self.hub = ProgressHub()
 
         def measure_calibrated(ctx: JobContext) -> dict[str, Any]:
+            if ctx.request.target == "calibration":  # a calibration sweep starts from the nominal rig
+                ctx.calibration = None
+                result = measure(ctx)
+                ctx.info["partial_result"] = {k: v for k, v in result.items() if k != RESULT_KEY}
+                return store_calibration(result, ctx.request, self.calibrations, self.store.rig_id, ctx.measurement.id)
             active = self.calibrations.active(self.store.rig_id)
             ctx.calibration = None if active is None else active.payload()
             return measure(ctx)
@@ -155,12 +161,11 @@ class Service:
 
 def expected_duration_s(req: MeasurementRequest, config: RigConfig) -> float:
     """A guess of a measurement's wall time before any has finished: its planned sweep plus 10 s
-    (approach, run-out, mapping and fit)."""
+    (approach, run-out, mapping and fit), plus 60 s for a calibration sweep's adjustment."""
     try:
-        return (
-            planned_duration_s(resolve_sweep(req.sweep, config), scan_frequency_hz=config.scanner.scan_frequency_hz)
-            + 10.0
-        )
+        return planned_duration_s(
+            resolve_sweep(req.sweep, config), scan_frequency_hz=config.scanner.scan_frequency_hz
+        ) + (70.0 if req.target == "calibration" else 10.0)
     except ValueError:
         return 60.0
 

@@ -11,7 +11,7 @@ identifiability report (or the whole result as JSON with ``--json``); ``--out`` 
 calibration file that ``lrms fit --calibration`` applies; ``--poses separate`` adjusts each
 sweep with its own unknown rig pose (the rig or the artefact moved between sweeps); ``--upload
 URL`` posts it to a service
-(``POST /api/v1/calibrations``, the admin token from ``--token`` or ``$LRMS_ADMIN_TOKEN``). See
+(``POST /api/v1/calibrations/upload``, the admin token from ``--token`` or ``$LRMS_ADMIN_TOKEN``). See
 docs/calibration.md.
 """
 
@@ -47,7 +47,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=20000,
         help="beams per plane (and per pose) the adjustment uses, a random subset (default 20000)",
     )
-    parser.add_argument("--sigma-l-mm", type=float, default=None, help="range noise (default 11.67 mm, seed 003)")
+    parser.add_argument(
+        "--sigma-l-mm",
+        type=float,
+        default=None,
+        help="range noise (default: the [noise] of the rig that recorded the raw logs, as the service's calibration "
+        "sweep uses it; for clouds 11.67 mm, seed 003)",
+    )
     parser.add_argument(
         "--optics",
         choices=("ideal", "lms1xx"),
@@ -91,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
         raise CalibrationError(f"--p must be a length >= 0, got {args.p}")
     sweeps = []
     nominal: RigModel | None = None
+    logged_sigma: set[float] = set()
     for name in args.clouds:
         if name.lower().endswith(".mcap"):
             from service.replay import log_readings
@@ -99,6 +106,8 @@ def run(args: argparse.Namespace) -> int:
             if nominal is not None and nominal != r.model:
                 raise CalibrationError(f"{name}: recorded with another rig model than the sweeps before it")
             nominal = r.model
+            if r.sigma_l is not None:
+                logged_sigma.add(r.sigma_l)
             sweeps.append(Observations.from_raw(r.l, r.alpha, r.beta, r.omega, source=name))
         else:
             sweeps.append(Observations.from_points(read_points(name), args.p, source=name))
@@ -108,7 +117,16 @@ def run(args: argparse.Namespace) -> int:
         raise CalibrationError(
             "clouds (mapped with the nominal Eq. 1, --p) and raw logs recorded with another rig model cannot be mixed"
         )
-    noise = NoiseModel() if args.sigma_l_mm is None else NoiseModel(sigma_l=args.sigma_l_mm / 1e3)
+    if args.sigma_l_mm is not None:
+        noise = NoiseModel(sigma_l=args.sigma_l_mm / 1e3)
+    elif (
+        len(logged_sigma) == 1
+        and len(sweeps) == len(args.clouds)
+        and all(n.lower().endswith(".mcap") for n in args.clouds)
+    ):
+        noise = NoiseModel(sigma_l=logged_sigma.pop())  # the recording rig's, as its service adjusts with it
+    else:
+        noise = NoiseModel()
     if args.plane_points < 100:
         raise CalibrationError(f"--plane-points must be at least 100, got {args.plane_points}")
     from lrms.cylinder import BeamOptics
@@ -134,11 +152,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def upload(body: str, url: str, token: str | None, name: str, comment: str, activate: bool) -> dict[str, Any]:
-    """POST a calibration's JSON to a service: ``url`` is the service's base URL or the
-    ``/api/v1/calibrations`` endpoint. The equivalent curl line::
+    """POST a calibration's JSON to a service: ``url`` is the service's base URL or its
+    ``/api/v1/calibrations`` (or ``.../upload``) endpoint. The equivalent curl line::
 
         curl -X POST -H "Authorization: Bearer $LRMS_ADMIN_TOKEN" -H "Content-Type: application/json" \\
-             --data @cal.json "http://127.0.0.1:8000/api/v1/calibrations?name=room-2026-05&activate=true"
+             --data @cal.json "http://127.0.0.1:8000/api/v1/calibrations/upload?name=room-2026-05&activate=true"
     """
     import os
 
@@ -148,8 +166,10 @@ def upload(body: str, url: str, token: str | None, name: str, comment: str, acti
     from service.errors import ServiceError
 
     endpoint = url.rstrip("/")
-    if not endpoint.endswith("/api/v1/calibrations"):
-        endpoint += "/api/v1/calibrations"
+    if endpoint.endswith("/api/v1/calibrations"):
+        endpoint += "/upload"
+    elif not endpoint.endswith("/api/v1/calibrations/upload"):
+        endpoint += "/api/v1/calibrations/upload"
     tok = token or os.environ.get(TOKEN_ENVS["admin"])
     headers = {"Content-Type": "application/json"}
     if tok:

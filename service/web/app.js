@@ -66,7 +66,8 @@ async function loadList() {
       cell(tr, utc(m.created_at));
       cell(tr, m.state, `state state-${m.state}`);
       const part = m.result && m.result.part;
-      cell(tr, part ? `${part.part_id} (${part.recipe} v${part.recipe_version})` : "-");
+      const calSweep = m.request && m.request.target === "calibration";
+      cell(tr, part ? `${part.part_id} (${part.recipe} v${part.recipe_version})` : calSweep ? "calibration sweep" : "-");
       cell(tr, mm(m.result && m.result.diameter_m), "n");
       const outcome = outcomeOf(m);
       const td = cell(tr, "");
@@ -128,6 +129,7 @@ function renderDetail(m) {
   const rows = [];
   if (r.part) rows.push(["part", `${r.part.part_id}, recipe ${r.part.recipe} v${r.part.recipe_version}`]);
   if (r.model) rows.push(["model", r.model]);
+  if (r.calibration_id) rows.push(["calibration made", `${r.calibration_id}${r.calibration_active ? " (active)" : ""}`]);
   if (r.diameter_m !== undefined) rows.push(["diameter (measured)", mm(r.diameter_m)]);
   if (r.thermal) rows.push(["diameter at 20 C", mm(r.thermal.diameter_20c_m)]);
   if (u.expanded_m !== undefined) rows.push([`U (k = ${u.k})`, mm(u.expanded_m, 4)]);
@@ -174,7 +176,11 @@ function renderDetail(m) {
   }
   const links = $("detail-links");
   links.replaceChildren();
-  if (m.state === "done" || m.state === "failed") {
+  // a calibration sweep (POST /api/v1/calibrations) measured no part: its calibration, no report
+  if (r.calibration_id) link(links, `${API}/calibrations/${r.calibration_id}`, "calibration (JSON)");
+  if (m.request && m.request.target === "calibration") {
+    // nothing more
+  } else if (m.state === "done" || m.state === "failed") {
     link(links, `${API}/measurements/${m.id}/report.html`, "report (HTML)");
     link(links, `${API}/measurements/${m.id}/report.pdf`, "report (PDF)");
   }

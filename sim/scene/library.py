@@ -270,6 +270,26 @@ def room_spheres(diameter_factor: float = 1.0, name: str = "room-spheres") -> Sc
     return scene
 
 
+def room_spheres_part() -> Scene:
+    """``room-spheres`` with seed 003's part on its table (legs down to the room's floor): the
+    calibration sweep and the part's measurement on one simulated rig (the service's whole loop,
+    ``POST /api/v1/calibrations`` then a measurement with the calibration)."""
+    scene = room_spheres(1.0, "room-spheres-part")
+    x0, y0, z0 = SEED003_AXIS_POINT
+    scene.add(
+        Cylinder(SEED003_AXIS_POINT, SEED003_AXIS_DIRECTION, SEED003_DIAMETER / 2, SEED003_HEIGHT),
+        remission=0.35,
+        name="cylinder",
+    )
+    top = 0.04
+    scene.add(Box((x0, y0, z0 - top / 2), (1.2, 0.8, top)), remission=0.6, name="table")
+    floor = ROOM_WALLS["z_min"]
+    leg_h = (z0 - top) - floor
+    for i, (dx, dy) in enumerate(((-0.55, -0.35), (0.55, -0.35), (-0.55, 0.35), (0.55, 0.35))):
+        scene.add(Box((x0 + dx, y0 + dy, floor + leg_h / 2), (0.05, 0.05, leg_h)), remission=0.4, name=f"table_leg{i}")
+    return scene
+
+
 def room_spheres_large() -> Scene:
     """``room-spheres`` with every sphere :data:`ROOM_SPHERES_LARGE_FACTOR` times larger."""
     return room_spheres(ROOM_SPHERES_LARGE_FACTOR, "room-spheres-large")
@@ -398,6 +418,11 @@ register_scene("seed003-bare", seed003_bare, "seed 003's cylinder and table only
 register_scene("empty", empty, "nothing: every beam misses")
 register_scene("wall", wall, "an infinite wall at y = 3 m")
 register_scene("room-spheres", room_spheres, "calibration room: 6 planes, 7 reference spheres (a 2 m sphere bar)")
+register_scene(
+    "room-spheres-part",
+    room_spheres_part,
+    "calibration room with seed 003's part on its table 2.53 m along +y (calibrate, then measure)",
+)
 register_scene(
     "room-spheres-large", room_spheres_large, "calibration room: 6 planes, 7 reference spheres of 0.4 / 0.5 m"
 )

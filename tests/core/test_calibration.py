@@ -18,6 +18,7 @@ from lrms.calibration import (
     CalibrationResult,
     CloudTooSmallError,
     DetectionError,
+    Identifiability,
     Observations,
     SphereSpec,
     apply_to_points,
@@ -211,6 +212,13 @@ def test_too_small_a_cloud_and_missing_spheres_are_typed_errors() -> None:
     ball.add(Sphere((0.0, 2.0, 0.0), 0.3), 0.8, "ball")
     with pytest.raises(DetectionError, match="no planes"):
         calibrate([sweep(ball, TRUE_RIG, speed_deg_s=5.0)], Artefact(planes=True), options=FAST)
+
+
+def test_a_singular_condition_is_null_in_json_and_infinite_again() -> None:
+    ident = Identifiability(held={}, rank=1, condition=float("inf"))
+    text = json.dumps(ident.to_dict(), allow_nan=False)  # strict JSON: no Infinity
+    assert json.loads(text)["condition"] is None
+    assert Identifiability.from_dict(json.loads(text)).condition == float("inf")
 
 
 def test_half_turn_inverse_recovers_readings_on_both_sides_of_the_shaft() -> None:

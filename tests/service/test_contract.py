@@ -79,12 +79,12 @@ def test_the_schema_declares_every_error_with_its_body(served: str) -> None:
             if method in {"post", "delete"}:
                 writes += 1
                 assert op.get("security") and {"401", "403", "413"} <= codes, (method, path)
-                if path in {"/api/v1/measurements", "/api/v1/schedules"}:
+                if path in {"/api/v1/measurements", "/api/v1/schedules", "/api/v1/calibrations"}:
                     assert "429" in codes and "Retry-After" in op["responses"]["429"]["headers"], path
             if "{" in path:
                 assert "404" in codes, (method, path)
     # create and cancel a measurement, create and delete a schedule, reset the drive, create and retire a recipe
-    assert writes == 9  # and upload and activate a calibration
+    assert writes == 10  # and run, upload and activate a calibration
 
 
 def test_schemathesis_finds_no_contract_failure(served: str, tmp_path: Path) -> None:
@@ -132,7 +132,7 @@ def test_schemathesis_finds_no_contract_failure(served: str, tmp_path: Path) -> 
     )
     assert proc.returncode == 0 and run["exit_code"] == 0, tail
     assert run["failures"] == [] and run["errors"] == [] and cases["with_failures"] == 0, tail
-    assert ops["tested"] == ops["total"] == 33, ops
+    assert ops["tested"] == ops["total"] == 34, ops
     assert {name: p["status"] for name, p in run["phases"].items()} == {
         "examples": "success",
         "coverage": "success",

@@ -186,6 +186,26 @@ def test_web_page_starts_a_measurement_and_opens_its_report(live: tuple[str, htt
             assert report.inner_text("#measurement-id") == mid
             assert "SHA-256" in report.inner_text("#raw-log")
             report.screenshot(path=str(tmp_path / "4-report.png"), full_page=True)
+            # a calibration sweep (an engineer's, POST /api/v1/calibrations) that saw too little: listed
+            # as such, its failure shown, and no part report offered
+            body = {
+                "artefact": {"planes": False, "spheres": [{"diameter_m": 0.2}]},
+                "sweep": {"start_deg": 0, "stop_deg": 5},
+            }
+            cal = client.post("/api/v1/calibrations", json=body, headers=ADMIN).json()
+            # (a 5 deg sweep of seed003: no sphere, or one in the clutter that determines no parameter)
+            why = _wait(client, cal["id"], {"failed"})["error"]
+            assert re.match(r"no spheres found|the sweeps determine none of the rig's parameters", why), why
+            page.click("#refresh")
+            sel = f'#measurements tr[data-id="{cal["id"]}"]'
+            page.wait_for_selector(sel)
+            assert "calibration sweep" in page.inner_text(sel)
+            page.click(sel)
+            page.wait_for_function(f"() => document.getElementById('detail-id').textContent === '{cal['id']}'")
+            page.wait_for_selector("#detail-error:not([hidden])")
+            assert why in page.inner_text("#detail-error")
+            assert "report (HTML)" not in page.inner_text("#detail-links")
+            assert "raw log (MCAP)" in page.inner_text("#detail-links")
             assert errors == []
         finally:
             browser.close()

@@ -438,3 +438,19 @@ def test_reprocess_on_a_postgresql_store_with_the_service_calibration_of_a_rig(
         timeout=120,
     )
     assert proc.returncode == 1 and "belongs to rig 'press-1', not to --rig 'press-2'" in proc.stderr
+
+
+def test_calibration_sweeps_are_not_re_fitted_as_parts(tmp_path: Path) -> None:
+    """A calibration sweep's job (POST /api/v1/calibrations) measured no part: the archive's
+    selection leaves it out, and keeps the part measurement beside it."""
+    store = Store(f"sqlite:///{tmp_path / 'lrms.sqlite'}", "rig-a")
+    ids = {}
+    for target, extra in (("cylinder", {}), ("calibration", {"calibration": {"artefact": {"planes": True}}})):
+        m = store.create_measurement({"target": target, **extra})
+        store.start(m.id)
+        raw = tmp_path / f"{m.id}.mcap"
+        raw.write_bytes(b"")
+        store.set_paths(m.id, raw_path=str(raw))
+        store.finish(m.id, {"diameter_m": 0.1} if target == "cylinder" else {"calibration_id": "0123456789abcdef"})
+        ids[target] = m.id
+    assert [a.measurement_id for a in rp.archived_measurements(store.engine)] == [ids["cylinder"]]

@@ -1,9 +1,16 @@
-"""``/api/v1/calibrations``: upload, list, read and activate rig calibrations (issue 12).
+"""``/api/v1/calibrations``: run a calibration sweep, upload, list, read and activate rig
+calibrations (issue 12).
 
-A calibration is uploaded as the JSON ``lrms calibrate --json / --out`` writes (schema
-``lrms.calibration/1``), checked by :func:`service.calstore.parse_calibration` (a malformed one is
-a 422 naming what is wrong, and nothing is stored). The rig's active calibration is what every
-measurement maps and fits with; the result names it (``result.calibration``).
+``POST /api/v1/calibrations`` queues a calibration sweep on the rig: a measurement job with target
+``"calibration"`` (:mod:`service.calibrating`), followed like any measurement at
+``/api/v1/measurements/{id}`` (progress, events, its raw log, failure with the reason); when it is
+done the calibration is stored (and activated if asked) and the job's result names it
+(``calibration_id``). A calibration computed elsewhere (``lrms calibrate --out``, several rig
+poses) is uploaded by ``POST /api/v1/calibrations/upload`` as the JSON ``lrms calibrate --json /
+--out`` writes (schema ``lrms.calibration/1``), checked by
+:func:`service.calstore.parse_calibration` (a malformed one is a 422 naming what is wrong, and
+nothing is stored). The rig's active calibration is what every measurement maps and fits with;
+the result names it (``result.calibration``).
 """
 
 from __future__ import annotations
@@ -12,13 +19,35 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Path, Query, Response, status
 from pydantic import BaseModel, Field
+from starlette.convertors import Convertor, register_url_convertor
 
 from service.api.core import Service
 from service.api.deps import ADMIN, READ, READ_RESPONSES, ServiceDep
 from service.api.errors import responses
+from service.api.routes.measurements import measurement_out
 from service.calstore import StoredCalibration, parse_calibration
 from service.errors import RequestFieldError
+from service.models import CalibrationRequest, MeasurementOut, resolve_sweep
 from service.store import NotFound
+
+#: Calibration ids as the store makes them (``uuid4().hex[:16]``).
+ID_PATTERN = r"^[0-9a-f]{16}$"
+
+
+class _IdConvertor(Convertor[str]):
+    """Calibration ids in paths: so ``/calibrations/upload`` and ``/calibrations/active`` are never
+    taken for ``/calibrations/{cid}`` (an id of another form is a 404)."""
+
+    regex = ID_PATTERN.removeprefix("^").removesuffix("$")
+
+    def convert(self, value: str) -> str:
+        return value
+
+    def to_string(self, value: str) -> str:
+        return value
+
+
+register_url_convertor("calibration_id", _IdConvertor())
 
 router = APIRouter(prefix="/calibrations", tags=["calibrations"], dependencies=READ, responses=READ_RESPONSES)
 
@@ -26,7 +55,7 @@ router = APIRouter(prefix="/calibrations", tags=["calibrations"], dependencies=R
 NAME_MAX_LENGTH = 200
 COMMENT_MAX_LENGTH = 2000
 
-CalibrationId = Annotated[str, Path(min_length=1, max_length=64, description="calibration id")]
+CalibrationId = Annotated[str, Path(pattern=ID_PATTERN, description="calibration id (16 hex digits)")]
 
 
 class CalibrationSummary(BaseModel):
@@ -72,6 +101,30 @@ RigId = Annotated[
 
 @router.post(
     "",
+    status_code=status.HTTP_202_ACCEPTED,
+    response_model=MeasurementOut,
+    dependencies=ADMIN,
+    responses=responses(400, 401, 403, 413, 422, 429),
+)
+def run_calibration(req: CalibrationRequest, response: Response, service: ServiceDep) -> MeasurementOut:
+    """Queue a calibration sweep: the rig sweeps (``sweep``; missing fields -90..90 deg at 20 deg/s)
+    and the rig model is adjusted to it with ``artefact`` (the room's planes, reference spheres,
+    centre distances), as ``lrms calibrate`` does. Answers the job (a measurement with target
+    ``"calibration"``, ``Location: /api/v1/measurements/{id}``); when it is done its result has
+    ``calibration_id`` (stored, and active if ``activate``), the summary and the identifiability
+    report. A sweep the rig cannot run is a 422 naming the field; nothing is queued then."""
+    job = req.measurement()
+    try:
+        resolve_sweep(job.sweep, service.config)
+    except RequestFieldError as exc:
+        raise exc.under("body") from None
+    m = service.runner.submit(job)
+    response.headers["Location"] = f"/api/v1/measurements/{m.id}"
+    return measurement_out(m)
+
+
+@router.post(
+    "/upload",
     status_code=status.HTTP_201_CREATED,
     response_model=CalibrationOut,
     dependencies=ADMIN,
@@ -122,13 +175,13 @@ def get_active_calibration(service: ServiceDep, rig_id: RigId = None) -> Calibra
     return _out(active)
 
 
-@router.get("/{cid}", response_model=CalibrationOut, responses=responses(404, 422))
+@router.get("/{cid:calibration_id}", response_model=CalibrationOut, responses=responses(404, 422))
 def get_calibration(cid: CalibrationId, service: ServiceDep) -> CalibrationOut:
     return _out(service.calibrations.get(cid))
 
 
 @router.post(
-    "/{cid}/activate",
+    "/{cid:calibration_id}/activate",
     response_model=CalibrationSummary,
     dependencies=ADMIN,
     responses=responses(401, 403, 404, 413, 422),

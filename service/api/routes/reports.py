@@ -31,6 +31,10 @@ _REPORT_RESPONSES = responses(404, 409, 422)
 
 def _reportable(service: ServiceDep, mid: str) -> Measurement:
     m = service.store.get(mid)  # 404 for an unknown id
+    if m.request.get("target") == "calibration":
+        cid = (m.result or {}).get("calibration_id")
+        where = f": its calibration is /api/v1/calibrations/{cid}" if cid else ""
+        raise HTTPException(409, f"measurement {mid} is a calibration sweep: no part report{where}")
     if m.state not in report.REPORTABLE:
         why = "it was cancelled and has no result" if m.state == "cancelled" else "wait until it is done"
         raise HTTPException(409, f"measurement {mid} is {m.state}: no report yet ({why})")
