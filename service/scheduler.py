@@ -10,7 +10,7 @@ schedule's ``last_run`` moves on with ``last_measurement_id`` null.
 
 A schedule may measure parts of a recipe: its template names the recipe (and optionally a pinned
 ``recipe_version``; default: the latest version when the run fires) and a part id, which may be a
-pattern (``"{date}-{n}"``, :func:`service.models.render_part_id`; ``{n}`` counts the schedule's
+pattern (``"{date}-{n}"``, :func:`service.schedulemodels.render_part_id`; ``{n}`` counts the schedule's
 measurements from 1). A run the recipe store refuses (the recipe retired or gone since) is skipped
 the same way (``reason="refused"``), with the reason logged.
 """
@@ -24,9 +24,10 @@ from datetime import UTC, datetime
 
 from service.errors import RequestFieldError
 from service.jobs import JobRunner, QueueFull
-from service.models import MeasurementRequest, ScheduledMeasurement, ScheduleRequest
+from service.models import MeasurementRequest
 from service.parts import resolve_part
 from service.recipestore import RecipeStore
+from service.schedulemodels import ScheduledMeasurement, ScheduleRequest
 from service.store import Schedule, Store
 
 log = logging.getLogger(__name__)

@@ -15,7 +15,7 @@ import pytest
 
 from service.api import ServerThread, Service, create_app
 from service.config import TOKEN_ENV, parse_toml
-from service.models import render_part_id
+from service.schedulemodels import render_part_id
 from tests.service.test_recipes import AUTH, TOKEN, Scripted, loc_of, recipe, wait_done
 
 HOUR = 3600.0

@@ -13,8 +13,9 @@ from service.api.deps import ADMIN, READ, READ_RESPONSES, ServiceDep
 from service.api.errors import responses
 from service.api.routes.measurements import ID_MAX_LENGTH, RigFilter
 from service.errors import RequestFieldError
-from service.models import ScheduleOut, ScheduleRequest, check_schedule, resolve_sweep
+from service.models import resolve_sweep
 from service.parts import resolve_part
+from service.schedulemodels import ScheduleOut, ScheduleRequest, check_schedule
 from service.store import Schedule
 
 router = APIRouter(prefix="/schedules", tags=["schedules"], dependencies=READ, responses=READ_RESPONSES)
