@@ -8,8 +8,10 @@ cylinder or an elbow the rig model is adjusted to the sweep's raw ``(l, alpha, b
 :func:`lrms.calibration.calibrate`, as ``lrms calibrate LOG.mcap`` does on the same raw log.
 
 :func:`calibration_result` runs in the rig process (its fit worker); :func:`store_calibration`
-runs in the service process, where the calibration store is: it stores the calibration (and
-activates it when the request says so) and leaves in the job's result its id and summary.
+runs in the service process, where the calibration store is: the calibration is stored (and
+activated when the request says so) in the transaction that marks the job done, and the job's
+result holds its id and summary. A cancel that arrives during the adjustment ends the job
+cancelled with nothing stored.
 """
 
 from __future__ import annotations
@@ -20,7 +22,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from service.calstore import CalibrationStore
     from service.config import RigConfig
-    from service.models import MeasurementRequest
+    from service.jobs import JobContext
+    from service.models import JobRequest
     from service.sweep import MappedSweep
 
 #: The job result's key of the whole calibration, from the rig process to the service process
@@ -28,7 +31,7 @@ if TYPE_CHECKING:
 RESULT_KEY = "calibration_result"
 
 
-def calibration_result(mapped: MappedSweep, request: MeasurementRequest, config: RigConfig) -> dict[str, Any]:
+def calibration_result(mapped: MappedSweep, request: JobRequest, config: RigConfig) -> dict[str, Any]:
     """Adjust the rig model to the sweep (:func:`lrms.calibration.calibrate`, one rig pose): the
     calibration's JSON under :data:`RESULT_KEY` and the number of beams it used. Raises the
     calibration's own errors (too few beams, no planes or spheres found: ``CalibrationError``)."""
@@ -54,19 +57,18 @@ def calibration_result(mapped: MappedSweep, request: MeasurementRequest, config:
     return {RESULT_KEY: result.to_dict(), "calibration_beams": len(obs)}
 
 
-def store_calibration(
-    result: dict[str, Any], request: MeasurementRequest, store: CalibrationStore, rig_id: str, measurement_id: str
-) -> dict[str, Any]:
-    """Store the calibration a calibration sweep's job computed (its sources: the measurement), and
-    activate it when asked: the job's result with the whole calibration replaced by
-    ``calibration_id``, ``calibration_active`` and its summary (``calibration_summary``).
-    :class:`service.errors.ServiceError` when the result holds no valid calibration (nothing is
-    stored then)."""
+def store_calibration(result: dict[str, Any], ctx: JobContext, store: CalibrationStore, rig_id: str) -> dict[str, Any]:
+    """The job's result for a calibration sweep's computed calibration: the whole calibration
+    replaced by ``calibration_id``, ``calibration_active`` and its summary
+    (``calibration_summary``, ``identifiability``). The calibration (its sources: the measurement)
+    is stored, and activated when the request says so, by ``ctx.finish_also``: in the transaction
+    that marks the job done, so a calibration is stored with its job done or not at all.
+    :class:`service.errors.ServiceError` when the result holds no valid calibration."""
     from lrms.calibration import CalibrationError
-    from service.calstore import parse_calibration
+    from service.calstore import StoredCalibration, new_id, parse_calibration
     from service.errors import ServiceError
 
-    spec = request.calibration
+    spec = ctx.request.calibration
     data = result.pop(RESULT_KEY, None)
     if spec is None or data is None:
         raise ServiceError("the calibration sweep's adjustment returned no calibration")
@@ -74,15 +76,18 @@ def store_calibration(
         cal = parse_calibration(data)
     except CalibrationError as exc:
         raise ServiceError(f"the calibration sweep's calibration is not valid: {exc}") from None
-    cal = dataclasses.replace(cal, sources=(f"measurement {measurement_id}",))
-    stored = store.add(cal, name=spec.name, comment=spec.comment, rig_id=rig_id)
-    if spec.activate:
-        stored = store.activate(stored.id)
-    summary = stored.summary()
+    cal = dataclasses.replace(cal, sources=(f"measurement {ctx.measurement.id}",))
+    cid = new_id()
+
+    def store_it(conn: Any) -> None:
+        store.add_in(conn, cal, name=spec.name, comment=spec.comment, rig_id=rig_id, cid=cid, activate=spec.activate)
+
+    ctx.finish_also = store_it
+    summary = StoredCalibration(cid, "", spec.name, spec.comment, rig_id, spec.activate, cal).summary()
     result.update(
-        calibration_id=stored.id,
-        calibration_active=stored.active,
-        calibration_summary={k: summary[k] for k in ("estimated", "held", "model", "residuals") if k in summary},
-        identifiability=cal.to_dict().get("identifiability"),
+        calibration_id=cid,
+        calibration_active=spec.activate,
+        calibration_summary={k: summary[k] for k in ("estimated", "held", "model", "residuals")},
+        identifiability=cal.identifiability.to_dict(),
     )
     return result

@@ -135,26 +135,45 @@ class CalibrationStore:
         self, calibration: CalibrationResult, *, name: str = "", comment: str = "", rig_id: str | None = None
     ) -> StoredCalibration:
         """Store ``calibration`` (inactive); its id and the time it was stored are new."""
+        with write_transaction(self.engine) as conn:
+            return self.add_in(conn, calibration, name=name, comment=comment, rig_id=rig_id)
+
+    def add_in(
+        self,
+        conn: sa.Connection,
+        calibration: CalibrationResult,
+        *,
+        name: str = "",
+        comment: str = "",
+        rig_id: str | None = None,
+        cid: str | None = None,
+        activate: bool = False,
+    ) -> StoredCalibration:
+        """:meth:`add` (and with ``activate`` :meth:`activate`) in the caller's write transaction
+        ``conn`` (:func:`service.db.tx.write_transaction`; a measurement's end, for a calibration
+        sweep: the calibration is stored with the job's result or not at all). ``cid``: its id
+        (default a new one)."""
         for label, text in (("name", name), ("comment", comment)):
             if not isinstance(text, str):
                 raise StoreError(f"a calibration's {label} is text")
         created = datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds")
-        cid = uuid.uuid4().hex[:16]
-        with write_transaction(self.engine) as conn:
-            seq = conn.execute(sa.select(sa.func.coalesce(sa.func.max(calibrations.c.seq), 0))).scalar_one()
-            conn.execute(
-                calibrations.insert().values(
-                    id=cid,
-                    seq=int(seq) + 1,
-                    created=created,
-                    name=name,
-                    comment=comment,
-                    rig_id=rig_id,
-                    result=calibration.to_json(indent=None),
-                    active=False,
-                )
+        cid = new_id() if cid is None else cid
+        seq = conn.execute(sa.select(sa.func.coalesce(sa.func.max(calibrations.c.seq), 0))).scalar_one()
+        conn.execute(
+            calibrations.insert().values(
+                id=cid,
+                seq=int(seq) + 1,
+                created=created,
+                name=name,
+                comment=comment,
+                rig_id=rig_id,
+                result=calibration.to_json(indent=None),
+                active=False,
             )
-        return StoredCalibration(cid, created, name, comment, rig_id, False, calibration)
+        )
+        if activate:
+            _activate(conn, cid)
+        return StoredCalibration(cid, created, name, comment, rig_id, activate, calibration)
 
     def get(self, cid: str) -> StoredCalibration:
         with self.engine.connect() as conn:
@@ -182,15 +201,24 @@ class CalibrationStore:
     def activate(self, cid: str) -> StoredCalibration:
         """Make ``cid`` its rig's active calibration (the rig's other calibrations become inactive)."""
         with write_transaction(self.engine) as conn:
-            row = conn.execute(sa.select(calibrations.c.rig_id).where(calibrations.c.id == cid)).first()
-            if row is None:
-                raise NotFound(f"no calibration {cid}")
-            conn.execute(calibrations.update().where(_same_rig(row.rig_id)).values(active=False))
-            conn.execute(calibrations.update().where(calibrations.c.id == cid).values(active=True))
+            _activate(conn, cid)
         return self.get(cid)
 
     def close(self) -> None:
         self.engine.dispose()
+
+
+def new_id() -> str:
+    """A new calibration id: 16 hex digits."""
+    return uuid.uuid4().hex[:16]
+
+
+def _activate(conn: sa.Connection, cid: str) -> None:
+    row = conn.execute(sa.select(calibrations.c.rig_id).where(calibrations.c.id == cid)).first()
+    if row is None:
+        raise NotFound(f"no calibration {cid}")
+    conn.execute(calibrations.update().where(_same_rig(row.rig_id)).values(active=False))
+    conn.execute(calibrations.update().where(calibrations.c.id == cid).values(active=True))
 
 
 def _same_rig(rig_id: str | None) -> sa.ColumnElement[bool]:

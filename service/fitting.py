@@ -78,10 +78,10 @@ def fit(
 
     Target ``"calibration"``: the rig model adjusted to the whole sweep
     (:func:`service.calibrating.calibration_result`), no region of interest."""
-    if request.target == "calibration":
+    if getattr(request, "calibration", None) is not None:  # a JobRequest of a calibration sweep
         from service.calibrating import calibration_result
 
-        out = calibration_result(mapped, request, config)
+        out = calibration_result(mapped, request, config)  # type: ignore[arg-type]
         out["calibration"] = None if calibration is None else calibration.reference()
         return out
     keep = select(mapped, request, config)

@@ -31,7 +31,7 @@ from drivers.errors import DriverError
 from lrms.errors import LrmsError
 from service import mcaprecovery
 from service.errors import ServiceError
-from service.models import MeasurementRequest
+from service.models import JobRequest, MeasurementRequest
 
 if TYPE_CHECKING:  # the store (SQLAlchemy, Alembic) is imported where it is used: the rig process
     # imports this module for JobContext and Cancelled only, and never opens a store
@@ -143,7 +143,7 @@ class JobContext:
     """What a measurement function gets: the request, where to write, progress and cancellation."""
 
     measurement: Measurement
-    request: MeasurementRequest
+    request: JobRequest
     raw_path: Path
     cloud_path: Path
     cancel_event: threading.Event
@@ -153,6 +153,10 @@ class JobContext:
     calibration: dict[str, Any] | None = None
     """The rig's active calibration (:meth:`service.calstore.StoredCalibration.payload`), set by
     the service when the measurement starts; None: the rig's ``[kinematics]`` as configured."""
+    finish_also: Callable[[Any], None] | None = None
+    """More writes in the transaction that marks the measurement done (``(connection) -> None``,
+    :meth:`service.store.Store.finish`): a calibration sweep's calibration is stored with its
+    job's result or not at all."""
 
     def progress(self, fraction: float, message: str) -> None:
         self.report(fraction, message)
@@ -354,7 +358,7 @@ class JobRunner:
                 last[0] = now
                 self.store.set_progress(m.id, fraction, message)
 
-        request = MeasurementRequest.model_validate(m.request)
+        request = JobRequest.model_validate(m.request)
         self._running_request = request
         ctx = JobContext(
             measurement=m,
@@ -369,7 +373,7 @@ class JobRunner:
         try:
             result = self.measure(ctx)
             self._record_paths(ctx)
-            done = self.store.finish(m.id, result)
+            done = self.store.finish(m.id, result, ctx.finish_also)
             state = "done"
             self.hub.publish(done)
         except Cancelled as exc:

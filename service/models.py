@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, SerializerFunctionWrapHandler, model_serializer, model_validator
 
 from service.config import MAX_K, MIN_K, MIN_SPEED_DEG_S, MIN_STEP_DEG, RigConfig
 from service.errors import Loc, RequestFieldError
@@ -178,18 +178,18 @@ class CalibrationRequest(CalibrationSpec):
     @model_validator(mode="before")
     @classmethod
     def _not_an_upload(cls, data: Any) -> Any:
-        if isinstance(data, dict) and "schema" in data and "artefact" not in data:
+        if isinstance(data, dict) and "schema" in data:
             raise ValueError(
                 "this is a calibration's JSON (lrms calibrate --out): upload it with POST /api/v1/calibrations/upload;"
                 " POST /api/v1/calibrations runs a calibration sweep on the rig"
             )
         return data
 
-    def measurement(self) -> MeasurementRequest:
+    def measurement(self) -> JobRequest:
         """The job's request: target 'calibration' with the sweep's defaults filled in."""
         sweep = {**CALIBRATION_SWEEP_DEFAULTS, **self.sweep.model_dump(exclude_none=True)}
         spec = CalibrationSpec.model_validate(self.model_dump(exclude={"sweep"}))
-        return MeasurementRequest(target="calibration", sweep=SweepSpec(**sweep), calibration=spec)
+        return JobRequest(target="calibration", sweep=SweepSpec(**sweep), calibration=spec)
 
 
 #: Names of recipes (and part ids): letters, digits, ``_`` and ``-`` (no ``.``: ``/recipes/{name}.toml``).
@@ -206,10 +206,8 @@ class MeasurementRequest(_Strict):
     ``part_id`` and optionally the part's temperature and the operator). The API expands a recipe
     into the free-form fields before the request is stored, with ``recipe_version`` pinned."""
 
-    target: Literal["cylinder", "elbow", "calibration"] | None = Field(
-        default=None,
-        description="the model to fit; required unless a recipe is named ('calibration': a calibration sweep, "
-        "started by POST /api/v1/calibrations only)",
+    target: Literal["cylinder", "elbow"] | None = Field(
+        default=None, description="the model to fit; required unless a recipe is named"
     )
     sweep: SweepSpec = Field(default_factory=SweepSpec)
     roi: RoiSpec | None = None
@@ -230,18 +228,9 @@ class MeasurementRequest(_Strict):
         default=None, ge=0.0, le=500.0, description="standard uncertainty of part_temperature_c (K)"
     )
     operator: str | None = Field(default=None, max_length=200, description="who measured (for the record)")
-    calibration: CalibrationSpec | None = Field(
-        default=None, description="target 'calibration' only: what the calibration sweep sees and how it is adjusted"
-    )
 
     @model_validator(mode="after")
     def _options_fit_target(self) -> MeasurementRequest:
-        if (self.target == "calibration") != (self.calibration is not None):
-            raise ValueError("calibration: given with target 'calibration' and only then")
-        if self.target == "calibration" and (
-            self.recipe is not None or self.roi is not None or self.options != FitOptions()
-        ):
-            raise ValueError("a calibration sweep takes no recipe, roi or options")
         if self.recipe is None:
             part = [f for f in ("recipe_version", "part_id", "part_temperature_c", "operator") if getattr(self, f)]
             if self.temperature_uncertainty_c is not None:
@@ -268,6 +257,38 @@ class MeasurementRequest(_Strict):
         if tol is not None and nominal is not None and tol >= nominal:
             raise ValueError("diameter_tolerance_m must be below nominal_diameter_m")
         return self
+
+
+class JobRequest(MeasurementRequest):
+    """What the job runner runs and stores: a measurement (:class:`MeasurementRequest`, what
+    ``POST /api/v1/measurements`` and schedules take), or a calibration sweep (target
+    ``"calibration"`` with ``calibration``, made by ``POST /api/v1/calibrations`` only:
+    :meth:`CalibrationRequest.measurement`). ``calibration`` is left out of the JSON when unset,
+    so a measurement's stored request is what was asked."""
+
+    target: Literal["cylinder", "elbow", "calibration"] | None = Field(  # type: ignore[assignment]
+        default=None, description="the model to fit, or 'calibration' (a calibration sweep)"
+    )
+    calibration: CalibrationSpec | None = Field(
+        default=None, description="target 'calibration' only: what the calibration sweep sees and how it is adjusted"
+    )
+
+    @model_validator(mode="after")
+    def _calibration_sweep(self) -> JobRequest:
+        if (self.target == "calibration") != (self.calibration is not None):
+            raise ValueError("calibration: given with target 'calibration' and only then")
+        if self.target == "calibration" and (
+            self.recipe is not None or self.roi is not None or self.options != FitOptions()
+        ):
+            raise ValueError("a calibration sweep takes no recipe, roi or options")
+        return self
+
+    @model_serializer(mode="wrap")
+    def _without_unset_calibration(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        data: dict[str, Any] = handler(self)
+        if data.get("calibration", 0) is None:
+            del data["calibration"]
+        return data
 
 
 class ResolvedSweep(BaseModel):

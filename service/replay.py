@@ -24,7 +24,7 @@ from service import mcaplog, mcaprecovery
 from service.config import RigConfig, parse_config
 from service.errors import ServiceError
 from service.fitting import rig_kinematics
-from service.models import MeasurementRequest, ResolvedSweep
+from service.models import JobRequest, ResolvedSweep
 from service.sweep import SweepRecorder
 
 if TYPE_CHECKING:
@@ -131,7 +131,7 @@ def replay(path: str | Path | BinaryIO, kinematics: dict[str, Any] | None = None
     from service.rig import finish_measurement
 
     log = load_log(path, kinematics)
-    request = MeasurementRequest.model_validate(log.meta["request"])
+    request = JobRequest.model_validate(log.meta["request"])
     _, result = finish_measurement(
         log.recorder, log.config, request, log.sweep, log.t_start, log.t_end, log.calibration
     )
@@ -150,7 +150,8 @@ def replay(path: str | Path | BinaryIO, kinematics: dict[str, Any] | None = None
     if stored is not None and stored.get("state") == "done" and kinematics is None:
         diff = max_abs_diff(stored["result"], result)
         out["max_abs_diff"] = diff
-        out["reproduced"] = diff is not None and diff <= 1e-9
+        scaled = max_abs_diff(stored["result"], result, relative=True)
+        out["reproduced"] = scaled is not None and scaled <= REPRODUCED
     return out
 
 
@@ -159,15 +160,15 @@ class LoggedReadings:
     """The raw readings of a logged sweep's valid beams (inside the sweep's constant-speed window
     and the fit's range limits): range ``l`` (m), scan angle ``alpha`` and plane angle ``beta``
     (rad, the rig's device conventions applied), the motor speed ``omega`` at each beam (rad/s),
-    and the rig model the measurement mapped with; ``sigma_l``: the range noise (m) of the rig's
-    ``[noise]`` when it logged (what the service's calibration sweep adjusts with)."""
+    and the rig model the measurement mapped with; ``noise``: the rig's ``[noise]`` when it logged
+    (:class:`lrms.covariance.NoiseModel`'s fields, SI: what the service's calibration sweep adjusts with)."""
 
     l: FloatArray
     alpha: FloatArray
     beta: FloatArray
     omega: FloatArray
     model: RigModel
-    sigma_l: float | None = None
+    noise: dict[str, float] | None = None
 
 
 def log_readings(path: str | Path) -> LoggedReadings:
@@ -195,7 +196,7 @@ def log_readings(path: str | Path) -> LoggedReadings:
         vel = np.gradient(pos, ts)
     omega = np.interp(mapped.beam_time_s, ts, vel)
     return LoggedReadings(
-        mapped.ranges, mapped.alpha, mapped.beta, omega, log.recorder.calibration.rig, float(cfg.noise.si()["sigma_l"])
+        mapped.ranges, mapped.alpha, mapped.beta, omega, log.recorder.calibration.rig, dict(cfg.noise.si())
     )
 
 
@@ -218,29 +219,37 @@ def logged_calibration(meta: dict[str, Any], path: str | Path | BinaryIO) -> Sto
 NOT_REPLAYED = frozenset({"duration_s", "scanner_stats", "measurement_id", "created"})
 
 
-def max_abs_diff(a: Any, b: Any) -> float | None:
-    """Largest absolute difference between two results' numbers; ``None`` when their structure
-    differs (a key present in one only, apart from :data:`NOT_REPLAYED`; lists of other lengths;
-    values of other kinds), so a replay that loses or adds a field is not "reproduced"."""
+#: A replay reproduces a result when every number agrees to this (absolutely, or relatively for
+#: numbers beyond 1 in magnitude: a calibration's condition number of 2e4 differs by 4e-8 between
+#: two processes' LAPACK, 2e-12 of it).
+REPRODUCED = 1e-9
+
+
+def max_abs_diff(a: Any, b: Any, relative: bool = False) -> float | None:
+    """Largest absolute difference between two results' numbers (``relative``: each difference
+    divided by the larger magnitude when that is beyond 1); ``None`` when their structure differs
+    (a key present in one only, apart from :data:`NOT_REPLAYED`; lists of other lengths; values of
+    other kinds), so a replay that loses or adds a field is not "reproduced"."""
     if isinstance(a, dict) and isinstance(b, dict):
         keys_a, keys_b = set(a) - NOT_REPLAYED, set(b) - NOT_REPLAYED
         if keys_a != keys_b:
             return None
-        diffs = [max_abs_diff(a[k], b[k]) for k in keys_a]
+        diffs = [max_abs_diff(a[k], b[k], relative) for k in keys_a]
         if any(d is None for d in diffs):
             return None
         return max((d for d in diffs if d is not None), default=0.0)
     if isinstance(a, list) and isinstance(b, list):
         if len(a) != len(b):
             return None
-        diffs = [max_abs_diff(x, y) for x, y in zip(a, b, strict=True)]
+        diffs = [max_abs_diff(x, y, relative) for x, y in zip(a, b, strict=True)]
         if any(d is None for d in diffs):
             return None
         return max((d for d in diffs if d is not None), default=0.0)
     if isinstance(a, bool) or isinstance(b, bool):
         return 0.0 if type(a) is type(b) and a == b else None
     if isinstance(a, int | float) and isinstance(b, int | float):
-        return abs(float(a) - float(b))
+        d = abs(float(a) - float(b))
+        return d / max(1.0, abs(float(a)), abs(float(b))) if relative else d
     return 0.0 if a == b else None
 
 

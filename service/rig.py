@@ -25,7 +25,7 @@ import numpy as np
 from drivers.lms100.client import ScannerClient
 from drivers.servo import cia402
 from drivers.url import open_device, register
-from lrms.errors import FitError
+from lrms.errors import FitError, LrmsError
 from lrms.kinematics import RigCalibration
 from service import fitting, mcaplog
 from service.config import RigConfig
@@ -162,6 +162,9 @@ def finish_measurement(
         err = FitError(f"{exc} ({mapped.points.shape[0]} points mapped)")
         err.partial_result = info  # type: ignore[attr-defined]
         raise err from exc
+    except LrmsError as exc:  # a calibration sweep's adjustment refused the data: the sweep's counters too
+        exc.partial_result = info  # type: ignore[attr-defined]
+        raise
     result.update(info)
     return mapped, result
 
@@ -521,7 +524,7 @@ class Rig:
             ctx.progress(0.86, "mapping")
             try:
                 mapped, result = self._finish(recorder, req, sweep, outcome.t_start_ns, outcome.t_end_ns, calibration)
-            except (FitError, SweepError) as exc:
+            except (LrmsError, SweepError) as exc:
                 partial = getattr(exc, "partial_result", None)
                 if partial is not None:  # the sweep's counters, so a failed fit still says what was measured
                     ctx.info["partial_result"] = mcaplog.json_safe(partial)

@@ -236,12 +236,12 @@ class _Worker:
         from drivers.errors import DriverError
         from lrms.errors import LrmsError
         from service.jobs import Cancelled, JobContext
-        from service.models import MeasurementRequest
+        from service.models import JobRequest
 
         m = cmd.measurement
         ctx = JobContext(
             measurement=m,
-            request=MeasurementRequest.model_validate(m.request),
+            request=JobRequest.model_validate(m.request),
             raw_path=Path(cmd.raw_path),
             cloud_path=Path(cmd.cloud_path),
             cancel_event=cancel,

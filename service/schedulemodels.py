@@ -111,12 +111,6 @@ class ScheduledMeasurement(MeasurementRequest):
             render_part_id(v, 0.0, 1)
         return v
 
-    @model_validator(mode="after")
-    def _not_a_calibration(self) -> ScheduledMeasurement:
-        if self.target == "calibration":
-            raise ValueError("a calibration sweep is not scheduled: POST /api/v1/calibrations runs one")
-        return self
-
     def for_run(self, when: float, n: int) -> MeasurementRequest:
         """The measurement request of the schedule's ``n``-th run at ``when``."""
         data = self.model_dump(exclude_unset=True)

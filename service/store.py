@@ -25,7 +25,7 @@ import json
 import threading
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -257,7 +257,13 @@ class Store:
         out.update({str(r[0]): int(r[1]) for r in rows})
         return out
 
-    def _transition(self, mid: str, allowed: tuple[str, ...], values: dict[str, Any]) -> Measurement:
+    def _transition(
+        self,
+        mid: str,
+        allowed: tuple[str, ...],
+        values: dict[str, Any],
+        also: Callable[[Connection], None] | None = None,
+    ) -> Measurement:
         with self._tx() as db:
             row = db.execute(_STATE_OF, {"m_id": mid}).first()
             if row is None:
@@ -267,6 +273,8 @@ class Store:
             if row.state not in allowed:
                 raise StoreError(f"measurement {mid} is {row.state}")
             db.execute(_UPDATE_M, {"m_id": mid, **values})
+            if also is not None:
+                also(db)
         return self.get(mid)
 
     def start(self, mid: str) -> Measurement:
@@ -298,7 +306,9 @@ class Store:
             with self._tx() as db:
                 db.execute(_UPDATE_MINE, {"m_id": mid, "m_rig": self.rig_id, **values})
 
-    def finish(self, mid: str, result: dict[str, Any]) -> Measurement:
+    def finish(self, mid: str, result: dict[str, Any], also: Callable[[Connection], None] | None = None) -> Measurement:
+        """Mark ``mid`` done with ``result``; ``also(conn)``: more writes in the same transaction
+        (a calibration sweep's calibration: stored with its job's result, or neither)."""
         return self._transition(
             mid,
             ("running",),
@@ -309,6 +319,7 @@ class Store:
                 "message": "done",
                 "result": json.dumps(result),
             },
+            also,
         )
 
     def fail(self, mid: str, reason: str, result: dict[str, Any] | None = None) -> Measurement:

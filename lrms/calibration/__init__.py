@@ -188,9 +188,8 @@ def calibrate(
     if not names:  # nothing to store: a "calibration" of the nominal rig would look like a real one
         raise CalibrationError(
             f"the sweeps determine none of the rig's parameters ({len(adj.state.planes)} planes, "
-            f"{len(adj.state.spheres)} spheres, {len(obs)} beams): a room's floor, "
-            "walls and ceiling over a wide motor sweep, and reference spheres at several ranges, determine them "
-            "(docs/calibration.md, identifiability rules)"
+            f"{len(adj.state.spheres)} spheres, {len(obs)} beams; docs/calibration.md, identifiability rules): "
+            + "; ".join(f"{n}: {why}" for n, why in held.items())
         )
     idx = [RigModel.NAMES.index(n) for n in names]
     cov = np.zeros((len(RigModel.NAMES), len(RigModel.NAMES)))

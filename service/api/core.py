@@ -16,7 +16,7 @@ from service.calibrating import RESULT_KEY, store_calibration
 from service.calstore import CalibrationStore
 from service.config import RigConfig
 from service.jobs import JobContext, JobRunner, MeasureFn, Metrics, ProgressHub
-from service.models import MeasurementRequest, planned_duration_s, resolve_sweep
+from service.models import JobRequest, MeasurementRequest, planned_duration_s, resolve_sweep
 from service.parts import with_parts
 from service.recipestore import RecipeStore
 from service.scheduler import Scheduler
@@ -106,7 +106,8 @@ class Service:
                 ctx.calibration = None
                 result = measure(ctx)
                 ctx.info["partial_result"] = {k: v for k, v in result.items() if k != RESULT_KEY}
-                return store_calibration(result, ctx.request, self.calibrations, self.store.rig_id, ctx.measurement.id)
+                ctx.check_cancelled()  # cancelled during the adjustment: nothing is stored
+                return store_calibration(result, ctx, self.calibrations, self.store.rig_id)
             active = self.calibrations.active(self.store.rig_id)
             ctx.calibration = None if active is None else active.payload()
             return measure(ctx)
@@ -165,7 +166,7 @@ def expected_duration_s(req: MeasurementRequest, config: RigConfig) -> float:
     try:
         return planned_duration_s(
             resolve_sweep(req.sweep, config), scan_frequency_hz=config.scanner.scan_frequency_hz
-        ) + (70.0 if req.target == "calibration" else 10.0)
+        ) + (70.0 if isinstance(req, JobRequest) and req.target == "calibration" else 10.0)
     except ValueError:
         return 60.0
 

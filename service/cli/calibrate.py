@@ -52,7 +52,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         type=float,
         default=None,
         help="range noise (default: the [noise] of the rig that recorded the raw logs, as the service's calibration "
-        "sweep uses it; for clouds 11.67 mm, seed 003)",
+        "sweep uses it, when they agree; else 11.67 mm, seed 003)",
     )
     parser.add_argument(
         "--optics",
@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
         raise CalibrationError(f"--p must be a length >= 0, got {args.p}")
     sweeps = []
     nominal: RigModel | None = None
-    logged_sigma: set[float] = set()
+    logged_noise: list[dict[str, float]] = []
     for name in args.clouds:
         if name.lower().endswith(".mcap"):
             from service.replay import log_readings
@@ -106,8 +106,8 @@ def run(args: argparse.Namespace) -> int:
             if nominal is not None and nominal != r.model:
                 raise CalibrationError(f"{name}: recorded with another rig model than the sweeps before it")
             nominal = r.model
-            if r.sigma_l is not None:
-                logged_sigma.add(r.sigma_l)
+            if r.noise is not None:
+                logged_noise.append(r.noise)
             sweeps.append(Observations.from_raw(r.l, r.alpha, r.beta, r.omega, source=name))
         else:
             sweeps.append(Observations.from_points(read_points(name), args.p, source=name))
@@ -119,12 +119,8 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.sigma_l_mm is not None:
         noise = NoiseModel(sigma_l=args.sigma_l_mm / 1e3)
-    elif (
-        len(logged_sigma) == 1
-        and len(sweeps) == len(args.clouds)
-        and all(n.lower().endswith(".mcap") for n in args.clouds)
-    ):
-        noise = NoiseModel(sigma_l=logged_sigma.pop())  # the recording rig's, as its service adjusts with it
+    elif logged_noise and len(logged_noise) == len(args.clouds) and all(n == logged_noise[0] for n in logged_noise):
+        noise = NoiseModel(**logged_noise[0])  # the recording rig's [noise], as its service adjusted with it
     else:
         noise = NoiseModel()
     if args.plane_points < 100:

@@ -14,6 +14,7 @@ from lrms.calibration import (
     AdjustOptions,
     Artefact,
     ArtefactError,
+    CalibrationError,
     CalibrationOptions,
     CalibrationResult,
     CloudTooSmallError,
@@ -212,6 +213,23 @@ def test_too_small_a_cloud_and_missing_spheres_are_typed_errors() -> None:
     ball.add(Sphere((0.0, 2.0, 0.0), 0.3), 0.8, "ball")
     with pytest.raises(DetectionError, match="no planes"):
         calibrate([sweep(ball, TRUE_RIG, speed_deg_s=5.0)], Artefact(planes=True), options=FAST)
+
+
+def test_data_that_determine_no_parameter_are_an_error_not_a_calibration() -> None:
+    """A 5 deg sweep of seed 003's table scene, with one 0.2 m sphere in the artefact and no planes:
+    a "sphere" in the clutter determines none of the rig's parameters. An error naming what was
+    found and what data would determine each parameter, not a calibration of the nominal rig
+    (which could be stored and activated as if it were one)."""
+    cal = k.RigCalibration(model=k.RigModel())
+    _, s = continuous_sweep_cloud(
+        get_scene("seed003"), cal, SensorModel(), D(0), D(5), D(10), rng=np.random.default_rng(0)
+    )
+    v = s.valid
+    obs = Observations.from_raw(s.ranges[v], cal.alpha(s.device_angle[v]), cal.beta(s.motor_angle[v]))
+    art = Artefact(planes=False, spheres=(SphereSpec(0.2),))
+    with pytest.raises(CalibrationError, match=r"determine none of the rig's parameters \(0 planes, 1 spheres") as exc:
+        calibrate([obs], art, options=FAST)
+    assert "k1: not determined by these data" in str(exc.value) and "known length" in str(exc.value)
 
 
 def test_a_singular_condition_is_null_in_json_and_infinite_again() -> None:

@@ -70,7 +70,8 @@ def test_a_calibration_sweep_on_the_miscalibrated_rig_then_a_measurement_with_it
             assert narrow.status_code == 202, narrow.text
             failed = _wait(client, narrow.json()["id"])
             assert failed["state"] == "failed" and "no spheres found" in failed["error"], failed
-            assert failed["has_raw"] and failed["result"] is None
+            # the sweep's counters are kept, as for a failed fit
+            assert failed["has_raw"] and failed["result"]["mapping"]["points"] > 0, failed
             assert client.get("/api/v1/calibrations").json() == []
 
             # the default sweep (-90..90 deg at 20 deg/s)
@@ -115,6 +116,9 @@ def test_a_calibration_sweep_on_the_miscalibrated_rig_then_a_measurement_with_it
             argv = ["calibrate", str(log), "--artefact", str(art), "--out", str(out), "--upload", srv.url]
             assert main([*argv, "--token", ADMIN, "--name", "from the log"]) == 0
             listed = client.get("/api/v1/calibrations").json()
+            from service.replay import replay
+
+            replayed = replay(log)
     finally:
         svc.stop()
         rig.close()
@@ -139,6 +143,8 @@ def test_a_calibration_sweep_on_the_miscalibrated_rig_then_a_measurement_with_it
     for name in cal["estimated"]:
         assert cli["model"][name] == pytest.approx(cal["model"][name], abs=1e-3 * std[name]), name
     assert [(c["name"], c["active"]) for c in listed] == [("from the log", False), ("room", True)]
+    # the replay of the calibration sweep's log computes its calibration again, the same
+    assert replayed["reproduced"], replayed["max_abs_diff"]
 
 
 class _Refused:
@@ -179,7 +185,11 @@ def served(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[tuple[ht
         ({"artefact": {}, "optics": "laser"}, ["body", "optics"], "'ideal' or 'lms1xx'"),
         ({"artefact": {}, "sweep": {"start_deg": -179.0, "stop_deg": 179.0}}, ["body", "sweep"], "travel"),
         ({}, ["body", "artefact"], "Field required"),
-        ({"schema": "lrms.calibration/1", "model": {}}, ["body"], "POST /api/v1/calibrations/upload"),
+        (  # a calibration file (lrms calibrate --out) posted here, as an old client would upload it
+            {"schema": "lrms.calibration/1", "model": {}, "artefact": {"planes": True}},
+            ["body"],
+            "POST /api/v1/calibrations/upload",
+        ),
     ],
 )
 def test_bad_calibration_requests_are_422_and_nothing_is_queued(
@@ -202,9 +212,13 @@ def test_a_calibration_sweep_needs_the_admin_and_its_own_route(served: tuple[htt
     assert client.post("/api/v1/calibrations", json=body).status_code == 401
     as_measurement = {"target": "calibration", "calibration": body}
     r = client.post("/api/v1/measurements", json=as_measurement, headers=OP)
-    assert r.status_code == 422 and "POST /api/v1/calibrations" in r.text, r.text
+    assert r.status_code == 422 and "'cylinder' or 'elbow'" in r.text, r.text
     r = client.post("/api/v1/schedules", json={"interval_s": 3600, "measurement": as_measurement}, headers=AUTH)
-    assert r.status_code == 422 and "not scheduled" in r.text, r.text
+    assert r.status_code == 422 and "'cylinder' or 'elbow'" in r.text, r.text
+    # the public schemas do not offer it either
+    schemas = client.get("/openapi.json").json()["components"]["schemas"]
+    assert schemas["MeasurementRequest"]["properties"]["target"]["anyOf"][0]["enum"] == ["cylinder", "elbow"]
+    assert "calibration" not in schemas["MeasurementRequest"]["properties"]
     assert client.get("/api/v1/measurements").json() == [] and client.get("/api/v1/schedules").json() == []
     assert fn.calls == 0
 
@@ -220,3 +234,36 @@ def test_a_job_without_a_calibration_in_its_result_fails_and_stores_nothing(
     job = _wait(client, r.json()["id"], 30.0)
     assert job["state"] == "failed" and "returned no calibration" in job["error"], job
     assert fn.calls == 1 and client.get("/api/v1/calibrations").json() == []
+
+
+class _AdjustsUntilCancelled:
+    """The rig's side of a calibration sweep cancelled during its adjustment: the sweep is over,
+    the adjustment (here: a valid calibration) finishes after the cancel arrived."""
+
+    def __call__(self, ctx: JobContext) -> dict[str, Any]:
+        from tests.service.test_calibrations import CAL
+
+        ctx.progress(0.86, "mapping")
+        end = time.monotonic() + 20.0
+        while not ctx.cancelled and time.monotonic() < end:
+            time.sleep(0.02)
+        return {"calibration_result": CAL.to_dict()}
+
+
+def test_a_calibration_sweep_cancelled_during_its_adjustment_stores_nothing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delenv(TOKEN_ENV, raising=False)
+    svc = Service(_config(tmp_path), _AdjustsUntilCancelled())
+    with ServerThread(create_app(svc)) as srv, httpx.Client(base_url=srv.url, timeout=10.0) as client:
+        body = {"artefact": room_spheres_artefact(), "activate": True}
+        job = client.post("/api/v1/calibrations", json=body, headers=AUTH).json()
+        end = time.monotonic() + 10.0
+        while client.get(f"/api/v1/measurements/{job['id']}").json()["message"] != "mapping":
+            assert time.monotonic() < end
+            time.sleep(0.02)
+        assert client.post(f"/api/v1/measurements/{job['id']}/cancel", headers=AUTH).status_code == 200
+        done = _wait(client, job["id"], 30.0)
+        assert done["state"] == "cancelled", done
+        assert client.get("/api/v1/calibrations").json() == []
+        assert client.get("/api/v1/calibrations/active").status_code == 404

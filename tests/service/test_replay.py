@@ -38,3 +38,16 @@ def test_lists_of_other_lengths_and_values_of_other_kinds_differ() -> None:
     assert max_abs_diff(STORED, {**STORED, "sweep": {"scan_gaps": [], "scans_missing": 2}}) is None
     assert max_abs_diff({"a": True}, {"a": 1.0}) is None
     assert max_abs_diff({"a": "x"}, {"a": "y"}) is None
+
+
+def test_large_numbers_are_compared_relatively_for_reproduced() -> None:
+    """A calibration's condition number (2e4) differs by 4e-8 between two processes' LAPACK: 2e-12
+    of it. ``max_abs_diff`` reports the absolute figure; ``relative`` scales numbers beyond 1."""
+    from service.replay import REPRODUCED
+
+    a, b = {"condition": 19351.2847078123, "k0": 0.025}, {"condition": 19351.28470777662, "k0": 0.025}
+    absolute, scaled = max_abs_diff(a, b), max_abs_diff(a, b, relative=True)
+    assert absolute is not None and 3.5e-8 < absolute < 3.6e-8
+    assert scaled is not None and scaled <= REPRODUCED
+    small = max_abs_diff({"k0": 0.025}, {"k0": 0.025 + 2e-9}, relative=True)
+    assert small is not None and small > REPRODUCED

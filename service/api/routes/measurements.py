@@ -77,10 +77,6 @@ def create_measurement(req: MeasurementRequest, response: Response, service: Ser
     ``sweep``, ``roi`` or ``options`` beside it is a 422). The sweep is checked against the rig
     (travel limits with the run-up, maximum speed, ``[sweep] max_duration_s``); a refusal is a 422
     naming the field. Nothing is stored for a refused request."""
-    if req.target == "calibration":
-        raise RequestFieldError(
-            [(("body", "target"), "a calibration sweep is run by POST /api/v1/calibrations (admin), not here")]
-        )
     if req.recipe is not None:
         req = _expand(req, service)
     try:
