@@ -65,8 +65,8 @@ from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import beta as beta_dist
 
+from bench.coverage_log import append_record, coverage_interval, done_sweeps, sweep_key, tree_revision
 from lrms.covariance import NoiseModel
 from lrms.cylinder import BeamOptics, fit_cylinder, nominal_diameter_range
 from lrms.errors import LrmsError
@@ -98,16 +98,11 @@ DUMP: Path | None = None
 ROI_BEAMS = True
 #: (scene, cloud, fit, case, row) of every case run, for the summary table.
 SUMMARY: list[tuple[str, str, str, str, Row]] = []
-
-
-def coverage_interval(k: int, n: int, level: float = 0.95) -> tuple[float, float]:
-    """Exact (Clopper-Pearson) binomial interval of a coverage of ``k`` in ``n``."""
-    if n == 0:
-        return 0.0, 1.0
-    a = (1.0 - level) / 2.0
-    lo = 0.0 if k == 0 else float(beta_dist.ppf(a, k, n - k + 1))
-    hi = 1.0 if k == n else float(beta_dist.ppf(1.0 - a, k + 1, n - k))
-    return lo, hi
+#: File each fitted sweep's record is appended to (``--jsonl``, bench/coverage_log.py), or None.
+JSONL: Path | None = None
+#: The sweeps already in JSONL (skipped: drawn, not fitted again) and the tree's commit.
+DONE: set[tuple[object, ...]] = set()
+REV = "unknown"
 
 
 @dataclass
@@ -228,15 +223,33 @@ class Row:
         )
 
 
-def run_case(g: Geometry, draw: Draw, sweeps: int, cloud: str, seed: int, fits: list[str]) -> dict[str, Row]:
+def run_case(
+    g: Geometry, draw: Draw, sweeps: int, cloud: str, seed: int, fits: list[str], label: str = ""
+) -> dict[str, Row]:
     rng = np.random.default_rng(seed)
     noise = NoiseModel()
     rows = {f: Row() for f in fits}
+
+    def record(kind: str, sweep: int) -> dict[str, object]:
+        return {
+            "scene": g.name,
+            "cloud": cloud,
+            "fit": kind,
+            "case": label,
+            "sub_rays": FOOTPRINT.sub_rays,
+            "hold_spot": not OPTICS.fit_spot,
+            "seed": seed,
+            "sweep": sweep,
+            "rev": REV,
+        }
+
     for sweep in range(sweeps):
         ranges, valid = draw(rng)
         fit_seed = int(rng.integers(1 << 31))
         if SWEEP_LIST is not None and sweep not in SWEEP_LIST:
             continue  # drawn (the stream stays that of every sweep), not fitted
+        if all(sweep_key(record(kind, sweep)) in DONE for kind in fits):
+            continue  # logged by an earlier run of the same --jsonl file
         pts = g.origins[valid] + ranges[valid, None] * g.dirs[valid]
         if cloud == "roi":
             pts = pts[np.all((pts >= g.roi_lo) & (pts <= g.roi_hi), axis=1)]
@@ -244,8 +257,21 @@ def run_case(g: Geometry, draw: Draw, sweeps: int, cloud: str, seed: int, fits: 
             DUMP.mkdir(parents=True, exist_ok=True)
             np.savez_compressed(DUMP / f"{cloud}-seed{seed}-sweep{sweep:04d}.npz", points=pts, fit_seed=fit_seed)
         for kind, row in rows.items():
+            rec = record(kind, sweep)
+            if sweep_key(rec) in DONE:
+                continue
+            rec["points"] = int(pts.shape[0])
             row.points += pts.shape[0]
             row.sweeps += 1
+            cpu0, wall0 = time.process_time(), time.perf_counter()
+
+            def log(status: str, rec: dict[str, object] = rec, cpu0: float = cpu0, wall0: float = wall0) -> None:
+                if JSONL is not None:
+                    rec["status"] = status
+                    rec["cpu_s"] = time.process_time() - cpu0
+                    rec["wall_s"] = time.perf_counter() - wall0
+                    append_record(JSONL, rec)
+
             try:
                 if kind == "thin":
                     fit = fit_cylinder(pts, noise=noise, rng=np.random.default_rng(fit_seed))
@@ -260,15 +286,21 @@ def run_case(g: Geometry, draw: Draw, sweeps: int, cloud: str, seed: int, fits: 
             except LrmsError as ex:
                 print(f"    !! {kind} sweep {sweep}: {type(ex).__name__}: {ex}", flush=True)
                 row.failed += 1
+                rec["reason"] = f"{type(ex).__name__}: {ex}"
+                log("failed")
                 continue
             except (ArithmeticError, ValueError, np.linalg.LinAlgError) as ex:
                 # not ours: an unattended 400-sweep run must not die on one sweep
                 print(f"    !! {kind} sweep {sweep}: {type(ex).__name__}: {ex}", flush=True)
                 row.failed += 1
+                rec["reason"] = f"{type(ex).__name__}: {ex}"
+                log("failed")
                 continue
             err = fit.diameter - g.diameter
+            rec["error_m"] = err
             if abs(err) > 0.5 * g.diameter:
                 row.gross += 1
+                log("gross")
                 continue
             row.errors.append(err)
             if "nominal_excess_m" in fit.extra:
@@ -282,14 +314,23 @@ def run_case(g: Geometry, draw: Draw, sweeps: int, cloud: str, seed: int, fits: 
                 row.modes.append({1.0: "1st", 0.0: "wtd"}.get(fit.extra["edge_mode_first"], "thin"))
             x = fit.extra
             u_fit = gum_interval(fit).std
-            row.u.append(
-                float(
-                    np.sqrt(
-                        u_fit**2
-                        + sum(x.get(k, 0.0) ** 2 for k in ("edge_model_u_m", "edge_family_u_m", "footprint_bias_u_m"))
-                    )
+            u = float(
+                np.sqrt(
+                    u_fit**2
+                    + sum(x.get(k, 0.0) ** 2 for k in ("edge_model_u_m", "edge_family_u_m", "footprint_bias_u_m"))
                 )
             )
+            row.u.append(u)
+            rec.update(
+                u_m=u,
+                U_m=2 * u,
+                covered=bool(abs(err) <= 2 * u),
+                won={1.0: "first", 0.0: "weighted"}.get(x.get("edge_mode_first", -1.0), "thin"),
+                tau=x.get("edge_threshold"),
+                spot_scale=x.get("edge_spot_scale"),
+                flagged="nominal_excess_m" in x,
+            )
+            log("ok")
         done = len(rows[fits[0]].errors) + rows[fits[0]].failed + rows[fits[0]].gross
         if PROGRESS and done % PROGRESS == 0:
             for kind, row in rows.items():
@@ -314,7 +355,7 @@ def bench_scene(g: Geometry, sweeps: int, clouds: list[str], family: bool, seed:
         for label, case_sensor in cases:
             draw = ideal_draw(g) if case_sensor is None else lms_draw(g, case_sensor, keep)
             t0 = time.perf_counter()
-            rows = run_case(g, draw, sweeps, cloud, seed, fits)
+            rows = run_case(g, draw, sweeps, cloud, seed, fits, label)
             dt = time.perf_counter() - t0
             for kind, row in rows.items():
                 print(f"  {cloud:4s} {kind:9s} {label:36s} {row.text()}  ({dt:5.1f} s)", flush=True)
@@ -370,9 +411,30 @@ def main(argv: list[str] | None = None) -> None:
         "--sweep-list", default=None, help="comma list of sweep indices to fit (the others drawn, not fitted)"
     )
     parser.add_argument("--dump", default=None, help="directory to save each fitted sweep's cloud (npz) in")
+    parser.add_argument(
+        "--jsonl", default=None, help="append each fitted sweep's record to this file; sweeps already in it are skipped"
+    )
+    parser.add_argument(
+        "--sweep-range", default=None, help="A:B: fit sweeps A..B-1 of the stream (the first A drawn, not fitted)"
+    )
     args = parser.parse_args(argv)
-    global FOOTPRINT, OFFSET_ROW, IDEAL_ROW, PROGRESS, ROI_BEAMS, SWEEP_LIST, DUMP, OPTICS
+    global FOOTPRINT, OFFSET_ROW, IDEAL_ROW, PROGRESS, ROI_BEAMS, SWEEP_LIST, DUMP, OPTICS, JSONL, DONE, REV
     SWEEP_LIST = None if args.sweep_list is None else {int(i) for i in args.sweep_list.split(",") if i}
+    if args.sweep_range is not None:
+        try:
+            first, stop = (int(x) for x in args.sweep_range.split(":"))
+        except ValueError:
+            parser.error("--sweep-range takes A:B (integers)")
+        if not 0 <= first < stop:
+            parser.error("--sweep-range A:B needs 0 <= A < B")
+        chunk = set(range(first, stop))
+        SWEEP_LIST = chunk if SWEEP_LIST is None else SWEEP_LIST & chunk
+        args.sweeps = stop
+    JSONL = None if args.jsonl is None else Path(args.jsonl)
+    DONE = done_sweeps(JSONL)
+    REV = tree_revision()
+    if DONE:
+        print(f"resuming: {len(DONE)} sweep records already in {JSONL}", flush=True)
     DUMP = None if args.dump is None else Path(args.dump)
     OPTICS = BeamOptics(fit_spot=not args.hold_spot)
     ROI_BEAMS = not args.all_beams
