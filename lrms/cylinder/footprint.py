@@ -296,6 +296,9 @@ class _Solved:
     n_par: int
     rays: Rays
     nfev: int = 0
+    #: the radius, the threshold or the spot scale ended on its bound: not a minimum of the likelihood
+    #: (the first hit's (radius, tau) ridge runs on beyond it), so no solution of the family
+    pinned: bool = False
 
 
 def _spot_index(mode: EdgeMode) -> int:
@@ -495,7 +498,13 @@ def _solve(frame: _Frame, rays: Rays, optics: BeamOptics, mode: EdgeMode, start:
     if not np.all(np.isfinite(out.x)):
         raise FitError("footprint fit diverged")
     tau = float(expit(out.x[5])) if mode == "first" else float("nan")
-    return _Solved(mode, np.asarray(out.x), tau, float(2.0 * out.cost), np.asarray(out.jac), start.size, rays, out.nfev)
+    watched = [i for i in (4, 5 if mode == "first" else -1, _spot_index(mode)) if 0 <= i < start.size]
+    x, width = np.asarray(out.x)[watched], (hi - lo)[watched]
+    # trf keeps its iterates strictly inside the box: "on the bound" is within PIN_TOL of the box's width
+    pinned = bool(np.any(np.minimum(x - lo[watched], hi[watched] - x) < PIN_TOL * width))
+    return _Solved(
+        mode, np.asarray(out.x), tau, float(2.0 * out.cost), np.asarray(out.jac), start.size, rays, out.nfev, pinned
+    )
 
 
 #: Bounds of the spot's log scale: half to twice the nominal size.
@@ -522,6 +531,10 @@ def _box(mode: EdgeMode, spot: float, size: int) -> tuple[FloatArray, FloatArray
 #: The first-hit family's Jacobian: "implicit" (:func:`_first_jacobian`) or "2-point" (plain
 #: forward differences through the Newton solve; kept as the benchmark's baseline).
 _JACOBIAN = "implicit"
+#: A family's solution within this share of its box's width from a bound (radius, threshold, spot
+#: scale) is pinned there (:attr:`_Solved.pinned`): the first hit's (radius, tau) ridge ran into the
+#: radius's upper bound at tau 0.8 on 1 sweep in 400 (issue 11's coverage run, 0.3:weighted sweep 367).
+PIN_TOL = 2e-3
 #: least_squares' relative tolerance on the cost.
 _FTOL = 1e-8
 
@@ -586,6 +599,8 @@ def footprint_fit(
     dropped: list[_Solved] = []
     if work.ranges.size > 2 * decide_size and len(modes) > 1:
         pick = np.sort(np.random.default_rng(5).choice(work.ranges.size, decide_size, replace=False))
+        # a family whose solution is pinned on a bound is left out as failed (no minimum: not
+        # refined, and no diameter of it in the model choice's spread)
         sub_solved = _fit_families(frame, work.subset(pick), optics, modes, starts, gate)
         if sub_solved:
             aic_sub = _aics(sub_solved, frame, work.subset(pick), optics, gate)
@@ -771,7 +786,8 @@ def _fit_families(
     first_multi: list[FloatArray] | None = None,
 ) -> list[_Solved]:
     """Each edge family fitted from ``starts``, gross outliers (beyond ``gate`` sigmas under the
-    footprint model) dropped and refitted once; a family that fails is left out. With
+    footprint model) dropped and refitted once; a family that fails is left out, and so is a
+    solution pinned on a bound (:attr:`_Solved.pinned`). With
     ``first_multi``, the first-hit family is fitted from each of those starts instead and the
     solution of the lowest criterion (:func:`_aics`, on ``work``) is kept."""
     solved: list[_Solved] = []
@@ -780,7 +796,9 @@ def _fit_families(
         found: list[_Solved] = []
         for start in tries:
             with suppress(FitError):
-                found.append(_fit_one(frame, work, optics, mode, start, gate))
+                one = _fit_one(frame, work, optics, mode, start, gate)
+                if not one.pinned:
+                    found.append(one)
         if len(found) > 1:
             crit = [_aics([f], frame, work, optics, gate)[mode] for f in found]
             found = [found[int(np.argmin(crit))]]
