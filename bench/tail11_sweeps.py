@@ -104,7 +104,7 @@ def trace_families() -> None:
             )
         return out
 
-    fp._fit_families = traced  # type: ignore[assignment]
+    fp._fit_families = traced
 
 
 def main(argv: list[str] | None = None) -> None:
