@@ -89,8 +89,9 @@ def _rot_z(angle_rad: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def add_seed003_part(scene: Scene) -> None:
-    """Seed 003's cylinder on its table (table top z = -0.1 m, 1.2 m x 0.8 m, four legs)."""
+def add_seed003_part(scene: Scene, floor_z: float = SEED003_FLOOR_Z) -> None:
+    """Seed 003's cylinder on its table (table top z = -0.1 m, 1.2 m x 0.8 m, four legs down to
+    ``floor_z``)."""
     x0, y0, z0 = SEED003_AXIS_POINT
     scene.add(
         Cylinder(SEED003_AXIS_POINT, SEED003_AXIS_DIRECTION, SEED003_DIAMETER / 2, SEED003_HEIGHT),
@@ -99,10 +100,10 @@ def add_seed003_part(scene: Scene) -> None:
     )
     top_thickness = 0.04
     scene.add(Box((x0, y0, z0 - top_thickness / 2), (1.2, 0.8, top_thickness)), remission=0.6, name="table")
-    leg_h = (z0 - top_thickness) - SEED003_FLOOR_Z
+    leg_h = (z0 - top_thickness) - floor_z
     for i, (dx, dy) in enumerate(((-0.55, -0.35), (0.55, -0.35), (-0.55, 0.35), (0.55, 0.35))):
         scene.add(
-            Box((x0 + dx, y0 + dy, SEED003_FLOOR_Z + leg_h / 2), (0.05, 0.05, leg_h)),
+            Box((x0 + dx, y0 + dy, floor_z + leg_h / 2), (0.05, 0.05, leg_h)),
             remission=0.4,
             name=f"table_leg{i}",
         )
@@ -275,18 +276,7 @@ def room_spheres_part() -> Scene:
     calibration sweep and the part's measurement on one simulated rig (the service's whole loop,
     ``POST /api/v1/calibrations`` then a measurement with the calibration)."""
     scene = room_spheres(1.0, "room-spheres-part")
-    x0, y0, z0 = SEED003_AXIS_POINT
-    scene.add(
-        Cylinder(SEED003_AXIS_POINT, SEED003_AXIS_DIRECTION, SEED003_DIAMETER / 2, SEED003_HEIGHT),
-        remission=0.35,
-        name="cylinder",
-    )
-    top = 0.04
-    scene.add(Box((x0, y0, z0 - top / 2), (1.2, 0.8, top)), remission=0.6, name="table")
-    floor = ROOM_WALLS["z_min"]
-    leg_h = (z0 - top) - floor
-    for i, (dx, dy) in enumerate(((-0.55, -0.35), (0.55, -0.35), (-0.55, 0.35), (0.55, 0.35))):
-        scene.add(Box((x0 + dx, y0 + dy, floor + leg_h / 2), (0.05, 0.05, leg_h)), remission=0.4, name=f"table_leg{i}")
+    add_seed003_part(scene, ROOM_WALLS["z_min"])
     return scene
 
 
