@@ -92,7 +92,11 @@ def _first_newton(
         ha = np.where(f >= 0, bt, hi[act])
         lo[act], hi[act] = la, ha
         step = bt - f / np.maximum(fp, 1e-300)
-        new = np.where((step > la) & (step < ha), step, 0.5 * (la + ha))
+        # a Newton step inside the bracket, or one within tol of the iterate (converged: from the
+        # side of the root where the last iterate stays the bracket's end, the step rounds onto it,
+        # and bisecting there cost about 30 more steps on a fifth of the beams)
+        take = ((step > la) & (step < ha)) | (np.abs(step - bt) < tol)
+        new = np.where(take, step, 0.5 * (la + ha))
         big_t[act] = new
         act = act[np.abs(new - bt) >= tol]
     if act.size:  # not converged in 60 steps: the slope at the final iterate
