@@ -19,11 +19,11 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Path, Query, Response, status
 from pydantic import BaseModel, Field
-from starlette.convertors import Convertor, register_url_convertor
 
 from service.api.core import Service
 from service.api.deps import ADMIN, READ, READ_RESPONSES, ServiceDep
 from service.api.errors import responses
+from service.api.paths import register_path_pattern
 from service.api.routes.measurements import measurement_out
 from service.calstore import StoredCalibration, parse_calibration
 from service.errors import RequestFieldError
@@ -34,20 +34,8 @@ from service.store import NotFound
 ID_PATTERN = r"^[0-9a-f]{16}$"
 
 
-class _IdConvertor(Convertor[str]):
-    """Calibration ids in paths: so ``/calibrations/upload`` and ``/calibrations/active`` are never
-    taken for ``/calibrations/{cid}`` (an id of another form is a 404)."""
-
-    regex = ID_PATTERN.removeprefix("^").removesuffix("$")
-
-    def convert(self, value: str) -> str:
-        return value
-
-    def to_string(self, value: str) -> str:
-        return value
-
-
-register_url_convertor("calibration_id", _IdConvertor())
+# so /calibrations/upload and /calibrations/active are never taken for /calibrations/{cid}
+register_path_pattern("calibration_id", ID_PATTERN)
 
 router = APIRouter(prefix="/calibrations", tags=["calibrations"], dependencies=READ, responses=READ_RESPONSES)
 

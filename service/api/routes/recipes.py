@@ -14,32 +14,20 @@ from typing import Annotated, Any, Literal
 from fastapi import APIRouter, HTTPException, Path, Query, Request, Response, status
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, Field, ValidationError
-from starlette.convertors import Convertor, register_url_convertor
 
 from lrms.spc import imr_chart
 from service.api.core import Service
 from service.api.deps import ADMIN, READ, READ_RESPONSES, ServiceDep
 from service.api.errors import responses
+from service.api.paths import register_path_pattern
 from service.errors import RequestFieldError
 from service.models import MAX_VERSION, NAME_PATTERN
 from service.recipes import Recipe, RecipeOut, from_toml, to_toml
 from service.recipestore import PartLink
 from service.store import NotFound
 
-
-class _NameConvertor(Convertor[str]):
-    """Recipe names in paths: no ``.``, so ``/recipes/{name}.toml`` is never taken for ``/recipes/{name}``."""
-
-    regex = NAME_PATTERN.removeprefix("^").removesuffix("$")
-
-    def convert(self, value: str) -> str:
-        return value
-
-    def to_string(self, value: str) -> str:
-        return value
-
-
-register_url_convertor("recipe", _NameConvertor())
+# recipe names have no ".", so /recipes/{name}.toml is never taken for /recipes/{name}
+register_path_pattern("recipe", NAME_PATTERN)
 
 router = APIRouter(prefix="/recipes", tags=["recipes"], dependencies=READ, responses=READ_RESPONSES)
 
