@@ -501,8 +501,8 @@ def detect_cylinder(
     else:
         data = np.hstack([sub, estimate_normals(sub, opt.normal_k)])
 
-    # a footprint widens the apparent part by up to a spot radius on each side (``opt.spot``)
-    spot_r = 0.5 * (opt.spot[0] + opt.spot[1] * float(np.max(np.linalg.norm(sub, axis=1))))
+    # a footprint widens the apparent part (``opt.spot``, :meth:`DetectOptions.widening`)
+    spot_r = opt.widening(float(np.max(np.linalg.norm(sub, axis=1))))
 
     class _Model(CylinderModel):
         normal_weight = opt.normal_weight

@@ -109,13 +109,11 @@ def nominal_check(fit: CylinderFit, diameter_range: tuple[float, float], k: floa
 
 
 def _radius_ok(cyl: Cylinder, opt: DetectOptions) -> bool:
-    """Is the radius in ``opt.radius_range``, the upper bound raised by the spot radius at the
-    axis' range from the rig (``opt.spot``: the thin-beam fit reads a footprint's edge echoes as
-    the part's surface, up to about a spot radius wider on each side)?"""
+    """Is the radius in ``opt.radius_range``, the upper bound raised by the footprint's widening at
+    the axis' range from the rig (:meth:`DetectOptions.widening`: the thin-beam fit reads a
+    footprint's edge echoes as the part's surface, up to about 1.5 spot radii wider on each side)?"""
     lo, hi = opt.radius_range
-    exit_d, div = opt.spot
-    allowance = 0.5 * (exit_d + div * float(np.linalg.norm(cyl.point)))
-    return lo <= cyl.radius <= hi + allowance
+    return lo <= cyl.radius <= hi + opt.widening(float(np.linalg.norm(cyl.point)))
 
 
 #: Radius offsets (in units of sigma_l) of the extra starts of the line-of-sight fit.
