@@ -575,7 +575,9 @@ def footprint_fit(
     budget row of the model choice, :func:`family_spread`; ``akaike_weight_*`` its weights),
     ``edge_mode_first`` (1 first hit, 0 energy-weighted, -1 the thin beam won), ``edge_threshold``
     (the fitted tau, first hit only), ``edge_spot_sensitivity_m`` (d diameter / d relative spot
-    size), ``thin_beam_diameter_m``, ``aic_weighted`` / ``aic_first`` / ``aic_thin``.
+    size), ``thin_beam_diameter_m``, ``aic_weighted`` / ``aic_first`` / ``aic_thin``,
+    ``footprint_beams`` (the beams of the chosen family's last solve: after the model choice, its
+    beams are taken anew about its own model, :func:`_regated`).
     """
     if not fit.line_of_sight:
         raise FitError("the footprint fit needs a line-of-sight fit")
@@ -644,6 +646,9 @@ def footprint_fit(
     extra.update({"edge_family_u_m": u_family, **{f"akaike_weight_{m}": w for m, w in weights.items()}})
     if aic_thin < aic[best.mode]:
         return replace(fit, extra={**extra, "edge_mode_first": -1.0, "edge_model_u_m": 0.0})
+    if REGATE_BAND > 0.0:
+        best = _regated(best, frame, rays, fit.cylinder, work, optics, gate, work_size)
+    extra["footprint_beams"] = float(best.rays.ranges.size)
     jac = best.jac
     n_res = best.rays.ranges.size  # range rows (a first-hit fit adds coverage rows)
     jtj_inv = np.linalg.pinv(jac.T @ jac)
@@ -761,6 +766,43 @@ def _first_starts(frame: _Frame, optics: BeamOptics, own: FloatArray | None) -> 
     for tau in FIRST_STARTS:
         out.append(_start("first", optics, tau, -sigma * float(ndtri(1.0 - tau))))
     return out
+
+
+#: The chosen family's last solve takes its beams anew (:func:`_regated`): every beam on the
+#: thin-beam cylinder's lines of sight within this band (m) of its range, then those within the
+#: gate of the family's own model. The thin fit's inliers are a band of twice the detection
+#: threshold about the thin beam's surface, which a footprint cloud's limbs leave by up to 1.5 spot
+#: radii: that band cut the noisy limb echoes on one side (a 1.0 m part at 5 m came out +10 mm with
+#: u 2 mm, its spot scale 0.88; docs/cylinder.md, section 7, session 11). 0: the thin fit's inliers.
+REGATE_BAND = 0.25
+
+
+def _regated(
+    best: _Solved, frame: _Frame, rays: Rays, thin: Cylinder, work: Rays, optics: BeamOptics, gate: float, size: int
+) -> _Solved:
+    """``best`` solved again on the beams within ``gate`` of its own model, taken from every beam on
+    the thin-beam cylinder's lines of sight within :data:`REGATE_BAND` of its range and between the
+    work beams' extreme heights along the axis (their ends already trimmed); twice, each time from
+    the last solution. A solution pinned on a bound, or fewer than 30 beams, keeps ``best``."""
+    t, gap = thin.ray_range(rays.origins, rays.dirs)
+    near = np.flatnonzero((gap <= 0.0) & (np.abs(rays.ranges - t) < REGATE_BAND))
+    tw, _ = thin.ray_range(work.origins, work.dirs)
+    hw = (work.origins + tw[:, None] * work.dirs - thin.point) @ thin.direction
+    hn = (rays.origins[near] + t[near, None] * rays.dirs[near] - thin.point) @ thin.direction
+    near = near[(hn >= hw.min()) & (hn <= hw.max())]
+    if near.size > size:
+        near = np.sort(np.random.default_rng(4).choice(near, size, replace=False))
+    pool = rays.subset(near)
+    for _ in range(2):
+        res = _residuals(best.theta, frame, pool, optics, best.mode)[: pool.ranges.size]
+        ok = np.flatnonzero(np.abs(res) < gate)
+        if ok.size < 30:
+            return best
+        again = _solve(frame, pool.subset(ok), optics, best.mode, best.theta)
+        if again.pinned:
+            return best
+        best = again
+    return best
 
 
 def _fit_one(frame: _Frame, work: Rays, optics: BeamOptics, mode: EdgeMode, start: FloatArray, gate: float) -> _Solved:

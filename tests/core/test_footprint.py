@@ -631,3 +631,40 @@ def test_the_first_hit_spot_scale_is_not_less_certain_than_its_prior() -> None:
     x = fit.extra
     assert x["edge_mode_first"] == 1.0 and x["footprint_profile_scale"] > 2.0, x
     assert 0.0 < x["edge_spot_scale_u"] <= BeamOptics().spot_scale_u * x["edge_spot_scale"], x
+
+
+def test_the_footprint_fit_takes_its_beams_about_its_own_model_not_the_thin_beams_band(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A 1.0 m part at 5 m (energy-weighted, 30 %, the simulator's noise growing with the range spread
+    inside the spot): the thin fit is several cm too wide, and its inliers (a band about that wider
+    surface) cut the noisy limb echoes on one side. Taken from there, the footprint fit came out
+    about 5 u too large; with the chosen family's beams taken anew about its own model (a band of
+    REGATE_BAND, then its gate) it is within 2 u of the truth."""
+    import lrms.cylinder.footprint as fpmod
+    from sim.scene.library import part_in_room
+
+    d = 1.0
+    scene = part_in_room(d, 5.0)
+    sensor = LMS1xxSensor(footprint=Footprint(sub_rays=32))
+    cal = RigCalibration()
+    dev = np.deg2rad(np.arange(60.0, 120.0 + 1e-9, 0.25))
+    mot = np.deg2rad(np.arange(-20.0, 70.0, 0.8))[:, None]
+    pts = cast_beams(scene, cal, sensor, dev, mot, np.random.default_rng(11)).points(cal)
+    # the part's axis at its foot (part_in_room: its near side where seed 003's is)
+    c0 = np.array([SEED003_AXIS_POINT[0] + 0.5 * (d - SEED003_DIAMETER), 5.0, SEED003_AXIS_POINT[2]])
+    lo, hi = c0 + np.array([-0.7, -0.7, -0.05]), c0 + np.array([0.7, 0.7, 0.9])
+    pts = pts[np.all((pts >= lo) & (pts <= hi), axis=1)]
+
+    def fit() -> tuple[float, float]:
+        rng = np.random.default_rng(0)
+        f = fit_cylinder(pts, rng=rng, optics=BeamOptics(), diameter_range=nominal_diameter_range(d))
+        assert f.extra["edge_mode_first"] == 0.0  # the energy-weighted family
+        assert f.extra["footprint_beams"] > 1000
+        return f.diameter - d, f.std_diameter
+
+    err, u = fit()
+    monkeypatch.setattr(fpmod, "REGATE_BAND", 0.0)
+    err_band, u_band = fit()
+    assert err_band > 3 * u_band  # the defect, still there with the thin fit's band (+8.9 mm, u 2.1)
+    assert abs(err) < 2 * u  # +1.1 mm
