@@ -215,18 +215,27 @@ def test_measurements_on_a_miscalibrated_rig_use_the_active_calibration(
     req = {"target": "cylinder", "sweep": {"speed_deg_s": 20.0}}
     try:
         with ServerThread(create_app(svc)) as srv, httpx.Client(base_url=srv.url, timeout=30.0) as client:
-            before = _wait(client, client.post("/api/v1/measurements", json=req, headers=OP).json()["id"])
+            # two sweeps each way: one sweep's uncalibrated diameter scatters by 0.7 mm about its -2.7 mm
+            # (six runs: -1.7..-3.7 mm; twice in about 15 fresh-clone CI runs a single one came out at
+            # -0.43 / -0.63 mm), the calibrated one by 0.4 mm: the means are compared
+            befores = [
+                _wait(client, client.post("/api/v1/measurements", json=req, headers=OP).json()["id"]) for _ in range(2)
+            ]
             cal = client.post(
                 "/api/v1/calibrations/upload",
                 params={"name": "truth", "activate": "true"},
                 content=CAL.to_json(),
                 headers=AUTH,
             ).json()
-            after = _wait(client, client.post("/api/v1/measurements", json=req, headers=OP).json()["id"])
+            afters = [
+                _wait(client, client.post("/api/v1/measurements", json=req, headers=OP).json()["id"]) for _ in range(2)
+            ]
     finally:
         svc.stop()
         rig.close()
-    assert before["state"] == "done" and after["state"] == "done", (before["error"], after["error"])
+    for m in (*befores, *afters):
+        assert m["state"] == "done", m["error"]
+    before, after = befores[0], afters[0]
     b, a = before["result"], after["result"]
     assert b["calibration"] is None
     assert a["calibration"] == {"id": cal["id"], "name": "truth", "created": cal["created"]}
@@ -235,22 +244,25 @@ def test_measurements_on_a_miscalibrated_rig_use_the_active_calibration(
     # now that the motor samples carry the drive's latch time (-0.9 mm once before, with the SYNC time's
     # smear, docs/service.md known limits): the calibrated result must be the closer
     assert b["sweep"]["motor_time_source"] == "drive"
-    # what the next failure needs to be traced (one fresh-clone run, 2026-11-24: before -0.63 mm, after
-    # +0.97 mm, not reproduced in 7 runs idle or with two CPU hogs: before -2.4..-4.5, after -0.78..+0.38 mm)
+    # what the next failure needs to be traced (fresh-clone runs, 2026-11-24: before -0.63 mm, after
+    # +0.97 mm; before -0.43, after -0.16 mm; 13 runs on this machine: before -1.7..-4.5, after -0.78..+1.17 mm)
     why = {
-        k: {
-            "error_mm": 1e3 * (r["diameter_m"] - truth),
-            "u_c_mm": 1e3 * r["uncertainty"]["combined_m"],
-            "inliers": r.get("n_inliers"),
-            "chi2_dof": r.get("chi2_dof"),
-            "scans_missing": r["sweep"].get("scans_missing"),
-            "scan_gaps": r["sweep"].get("scan_gaps"),
-            "motor_timing_jitter_s": r["sweep"].get("motor_timing_jitter_s"),
+        f"{k}{i}": {
+            "error_mm": 1e3 * (m["result"]["diameter_m"] - truth),
+            "u_c_mm": 1e3 * m["result"]["uncertainty"]["combined_m"],
+            "inliers": m["result"].get("n_inliers"),
+            "chi2_dof": m["result"].get("chi2_dof"),
+            "scans_missing": m["result"]["sweep"].get("scans_missing"),
+            "scan_gaps": m["result"]["sweep"].get("scan_gaps"),
+            "motor_timing_jitter_s": m["result"]["sweep"].get("motor_timing_jitter_s"),
         }
-        for k, r in (("before", b), ("after", a))
+        for k, ms in (("before", befores), ("after", afters))
+        for i, m in enumerate(ms)
     }
-    assert b["diameter_m"] - truth < -0.5e-3, why  # -1.34 mm seen in a fresh-clone CI run: -1.5 mm was too tight
-    assert abs(a["diameter_m"] - truth) < abs(b["diameter_m"] - truth), why
+    err_b = float(np.mean([m["result"]["diameter_m"] for m in befores])) - truth
+    err_a = float(np.mean([m["result"]["diameter_m"] for m in afters])) - truth
+    assert err_b < -0.5e-3, why  # about 4 std of a mean of two from its -2.7 mm
+    assert abs(err_a) < abs(err_b), why
     # the fit's own noise (u ~ 0.5 mm at 20 deg/s) dominates the calibrated result: within 3 u_c
     assert abs(a["diameter_m"] - truth) <= 3 * a["uncertainty"]["combined_m"], why
     tilt = [np.rad2deg(np.arccos(abs(r["axis_direction"][2]))) for r in (b, a)]
