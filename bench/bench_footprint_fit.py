@@ -2,7 +2,7 @@
 
 Seed 003's 137.5 mm part alone (no table, no room) at 2.53 m, noiseless LMS1xx first-hit echoes
 (``--sub-rays`` of the simulator, every 4th scan of the bench's 0.4 deg sweep, beams clear of the
-part's ends), and the first-hit family's solve (``lrms.cylinder.footprint._solve``) started at the
+part's ends), and the first-hit family's solve (``lrms.cylinder.footprint_solve._solve``) started at the
 true cylinder and threshold. Printed per threshold (10 / 30 / 50 %) and Jacobian: the fitted
 diameter's error (mm), the fitted threshold, residual evaluations, wall time, and the time ratio of
 the implicit-step Jacobian (``_first_jacobian``) against plain forward differences through the
@@ -24,7 +24,7 @@ import time
 import numpy as np
 from scipy.special import logit
 
-import lrms.cylinder.footprint as fp
+import lrms.cylinder.footprint_solve as fp
 from lrms.covariance import NoiseModel
 from lrms.cylinder import BeamOptics, Cylinder, Rays, fit_cylinder, nominal_diameter_range
 from lrms.cylinder.refine import _Frame

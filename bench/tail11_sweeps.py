@@ -22,7 +22,7 @@ from scipy.optimize import least_squares
 from bench import bench_sensor_model as bsm
 from lrms.covariance import NoiseModel
 from lrms.cylinder import BeamOptics, fit_cylinder, nominal_diameter_range
-from lrms.cylinder.footprint import _box, _end_trim, _residuals, _solve
+from lrms.cylinder.footprint_solve import _box, _end_trim, _fit_scale, _residuals, _solve
 from lrms.cylinder.model import rays_from_points
 from lrms.cylinder.refine import _Frame
 from lrms.errors import LrmsError
@@ -99,7 +99,7 @@ def trace_families() -> None:
             print(
                 f"    family {s.mode:8s} on {work.ranges.size} beams: dD from thin {2e3 * s.theta[4]:+7.2f} mm"
                 f" (radius box [{1e3 * lo[4]:+.1f}, {1e3 * hi[4]:+.1f}] mm), tau {s.tau:.3f},"
-                f" spot {fp._fit_scale(s.theta, s.mode):.3f}, aic {aic[s.mode]:.1f}",
+                f" spot {_fit_scale(s.theta, s.mode):.3f}, aic {aic[s.mode]:.1f}",
                 flush=True,
             )
         return out

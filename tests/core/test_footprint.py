@@ -283,7 +283,7 @@ def test_the_first_hit_jacobian_matches_differences_through_the_newton_solve(spo
     from scipy.optimize._numdiff import approx_derivative
     from scipy.special import logit
 
-    from lrms.cylinder.footprint import _first_jacobian, _residuals
+    from lrms.cylinder.footprint_solve import _first_jacobian, _residuals
     from lrms.cylinder.refine import _Frame
 
     scene_pts = footprint_sweep(0.3, "first", 9)[::12]
@@ -317,7 +317,7 @@ def test_the_first_hit_slope_includes_the_spots_growth_with_range() -> None:
     central differences of ``F`` in ``T``: the spot widens with ``T`` on the part's near side, a term
     once left out (3-7 % off on limb beams, more where F is nearly flat). Beams flagged near the
     front's tip (F's kink) are left out, as in the partials' test below."""
-    from lrms.cylinder.footprint import _first_share, _first_share_grad
+    from lrms.cylinder.footprint_first import _first_share, _first_share_grad
 
     rng = np.random.default_rng(0)
     n, r, s0, sd = 3000, 0.069, 0.25 * 0.008, 0.25 * 0.015
@@ -343,7 +343,7 @@ def test_the_first_hit_shares_partials_match_its_differences_away_from_the_front
     Jacobian uses instead of one evaluation per column: against central differences of F on beams
     spread over the part's front, the limbs and behind the axis, except those flagged as having
     a node near the front's tip (the square root's infinite slope), which the Jacobian evaluates."""
-    from lrms.cylinder.footprint import _first_share, _first_share_grad
+    from lrms.cylinder.footprint_first import _first_share, _first_share_grad
 
     rng = np.random.default_rng(0)
     n, r, s0, sd = 3000, 0.069, 0.25 * 0.008, 0.25 * 0.015
@@ -398,7 +398,9 @@ def test_the_first_hit_memory_reuses_only_the_same_parameters_and_its_jacobian_m
     from scipy.optimize._numdiff import approx_derivative
     from scipy.special import expit, logit
 
-    from lrms.cylinder.footprint import _first_jacobian, _geometry, _residuals, _Warm, first_hit_range
+    from lrms.cylinder.footprint_echo import _geometry
+    from lrms.cylinder.footprint_first import first_hit_range
+    from lrms.cylinder.footprint_solve import _first_jacobian, _residuals, _Warm
     from lrms.cylinder.refine import _Frame
 
     scene_pts = footprint_sweep(0.1, "first", 5)[::12]
