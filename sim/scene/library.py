@@ -89,24 +89,32 @@ def _rot_z(angle_rad: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def add_part_on_table(
+    scene: Scene,
+    axis_point: tuple[float, float, float],
+    diameter: float,
+    height: float,
+    remission: float = 0.35,
+    floor_z: float = SEED003_FLOOR_Z,
+) -> None:
+    """A standing cylindrical part (the object "cylinder", its axis from ``axis_point`` up) on a
+    table: the top's upper face at the part's foot, 0.04 m thick, at least 1.2 m x 0.8 m and 0.4 m
+    larger than the part; four 0.05 m legs 0.05 m in from its corners, down to ``floor_z``."""
+    x0, y0, z0 = axis_point
+    scene.add(Cylinder(axis_point, SEED003_AXIS_DIRECTION, diameter / 2, height), remission=remission, name="cylinder")
+    sx, sy = max(1.2, diameter + 0.4), max(0.8, diameter + 0.4)
+    top = 0.04
+    scene.add(Box((x0, y0, z0 - top / 2), (sx, sy, top)), remission=0.6, name="table")
+    leg_h = (z0 - top) - floor_z
+    for i, (fx, fy) in enumerate(((-1, -1), (1, -1), (-1, 1), (1, 1))):
+        centre = (x0 + fx * (sx / 2 - 0.05), y0 + fy * (sy / 2 - 0.05), floor_z + leg_h / 2)
+        scene.add(Box(centre, (0.05, 0.05, leg_h)), remission=0.4, name=f"table_leg{i}")
+
+
 def add_seed003_part(scene: Scene, floor_z: float = SEED003_FLOOR_Z) -> None:
     """Seed 003's cylinder on its table (table top z = -0.1 m, 1.2 m x 0.8 m, four legs down to
     ``floor_z``)."""
-    x0, y0, z0 = SEED003_AXIS_POINT
-    scene.add(
-        Cylinder(SEED003_AXIS_POINT, SEED003_AXIS_DIRECTION, SEED003_DIAMETER / 2, SEED003_HEIGHT),
-        remission=0.35,
-        name="cylinder",
-    )
-    top_thickness = 0.04
-    scene.add(Box((x0, y0, z0 - top_thickness / 2), (1.2, 0.8, top_thickness)), remission=0.6, name="table")
-    leg_h = (z0 - top_thickness) - floor_z
-    for i, (dx, dy) in enumerate(((-0.55, -0.35), (0.55, -0.35), (-0.55, 0.35), (0.55, 0.35))):
-        scene.add(
-            Box((x0 + dx, y0 + dy, floor_z + leg_h / 2), (0.05, 0.05, leg_h)),
-            remission=0.4,
-            name=f"table_leg{i}",
-        )
+    add_part_on_table(scene, SEED003_AXIS_POINT, SEED003_DIAMETER, SEED003_HEIGHT, 0.35, floor_z)
 
 
 def seed003() -> Scene:
@@ -178,14 +186,8 @@ def part_in_room(
     x0 = SEED003_AXIS_POINT[0] + 0.5 * (diameter - SEED003_DIAMETER)
     z0 = SEED003_AXIS_POINT[2]
     scene = Scene(name)
-    scene.add(Cylinder((x0, distance, z0), (0.0, 0.0, 1.0), diameter / 2, height), remission=remission, name="cylinder")
-    sx, sy = max(1.2, diameter + 0.4), max(0.8, diameter + 0.4)
-    top = 0.04
-    scene.add(Box((x0, distance, z0 - top / 2), (sx, sy, top)), remission=0.6, name="table")
-    leg_h = (z0 - top) - SEED003_FLOOR_Z
-    for i, (fx, fy) in enumerate(((-1, -1), (1, -1), (-1, 1), (1, 1))):
-        centre = (x0 + fx * (sx / 2 - 0.05), distance + fy * (sy / 2 - 0.05), SEED003_FLOOR_Z + leg_h / 2)
-        scene.add(Box(centre, (0.05, 0.05, leg_h)), remission=0.4, name=f"table_leg{i}")
+    add_part_on_table(scene, (x0, distance, z0), diameter, height, remission)
+    sx = max(1.2, diameter + 0.4)
     far = distance + diameter / 2
     scene.add(
         Cylinder((x0 + sx / 2 + 0.5, far + 0.4, SEED003_FLOOR_Z), (0.0, 0.0, 1.0), 0.125, 1.0),

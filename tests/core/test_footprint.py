@@ -645,6 +645,7 @@ def test_the_footprint_fit_takes_its_beams_about_its_own_model_not_the_thin_beam
     REGATE_BAND, then its gate) it is within 2 u of the truth."""
     import lrms.cylinder.footprint as fpmod
     from sim.scene.library import part_in_room
+    from sim.scene.shapes import Cylinder as SceneCylinder
 
     d = 1.0
     scene = part_in_room(d, 5.0)
@@ -653,8 +654,9 @@ def test_the_footprint_fit_takes_its_beams_about_its_own_model_not_the_thin_beam
     dev = np.deg2rad(np.arange(60.0, 120.0 + 1e-9, 0.25))
     mot = np.deg2rad(np.arange(-20.0, 70.0, 0.8))[:, None]
     pts = cast_beams(scene, cal, sensor, dev, mot, np.random.default_rng(11)).points(cal)
-    # the part's axis at its foot (part_in_room: its near side where seed 003's is)
-    c0 = np.array([SEED003_AXIS_POINT[0] + 0.5 * (d - SEED003_DIAMETER), 5.0, SEED003_AXIS_POINT[2]])
+    part = scene.objects[scene.index_of("cylinder")].shape
+    assert isinstance(part, SceneCylinder)
+    c0 = part.point  # the part's axis at its foot
     lo, hi = c0 + np.array([-0.7, -0.7, -0.05]), c0 + np.array([0.7, 0.7, 0.9])
     pts = pts[np.all((pts >= lo) & (pts <= hi), axis=1)]
 
