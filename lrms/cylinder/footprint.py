@@ -94,6 +94,9 @@ MODE_DECISIVE = 10.0
 #: :func:`_first_starts`): its cost in (radius, tau) has local minima along a rough ridge, and one
 #: start from the thin beam settled up to 15 mm small on 10 % first-hit clouds.
 FIRST_STARTS = (0.1, 0.3, 0.5)
+#: The energy-weighted family's refinement on all work beams starts from the thin beam's solution,
+#: not from its subsample's (False: from the subsample's, before session 12).
+WEIGHTED_FROM_THIN = True
 
 
 def footprint_fit(
@@ -156,7 +159,11 @@ def footprint_fit(
             thin_sub = _thin_criterion(thin_res, gate, pick)
             floor = min(min(aic_sub.values()), thin_sub)
             plausible = [s.mode for s in sub_solved if aic_sub[s.mode] - floor < MODE_DECISIVE]
-            starts.update({s.mode: s.theta for s in sub_solved})
+            # the subsample's solution starts the first hit's multi-start; the energy-weighted family
+            # is refined from the thin beam again: its subsample solution can sit in another basin,
+            # which the refinement on all beams (and its gate) kept (a 10 % energy-weighted sweep
+            # ended 25 mm small; docs/cylinder.md, section 7, session 12)
+            starts.update({s.mode: s.theta for s in sub_solved if s.mode == "first" or not WEIGHTED_FROM_THIN})
             if not plausible:  # the thin beam wins clearly: refine the best family for the record
                 plausible = [min(sub_solved, key=lambda s: aic_sub[s.mode]).mode]
             dropped = [s for s in sub_solved if s.mode not in plausible]

@@ -12,6 +12,7 @@ from scipy.special import ndtr
 from lrms.cylinder import (
     BeamOptics,
     Cylinder,
+    CylinderFit,
     Rays,
     dominant_planes,
     expected_echo,
@@ -672,3 +673,43 @@ def test_the_footprint_fit_takes_its_beams_about_its_own_model_not_the_thin_beam
     err_band, u_band = fit()
     assert err_band > 3 * u_band  # the defect, still there with the thin fit's band (+8.9 mm, u 2.1)
     assert abs(err) < 2 * u  # +1.1 mm
+
+
+#: Sweep 8 (0-based) of the bench's seed-11 stream, 10 % energy-weighted echoes: ``PYTHONPATH=.
+#: python -m bench.bench_sensor_model --only seed003 --clouds roi --fit footprint --no-offset
+#: --no-ideal --edges 0.1:weighted --seed 11 --sweeps 9 --sweep-list 8 --dump DIR`` on the
+#: 128-sub-ray ray cast of ``seed003-room`` (137.5 mm part at 2.53 m): the whole "roi" cloud (5197
+#: points, stored as float32) and the bench's fit seed for that sweep.
+SUBSAMPLE_BASIN = Path(__file__).resolve().parents[1] / "data" / "cylinder" / "room-sweep-seed11-w10-008-roi.npz"
+
+
+def test_the_energy_weighted_family_is_refined_from_the_thin_beam_not_from_its_subsample(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """On this sweep the energy-weighted family's solve on the 1000-beam subsample ends in another
+    basin, 25 mm small; refined on all work beams from there (and gated about it) it stayed there
+    (112.3 mm, u 3.2 mm, refused by the nominal check: 1 of 200 sweeps of the coverage run). Refined
+    from the thin beam's solution the family finds the minimum of all beams: +7.0 mm, u 5.5 mm."""
+    import lrms.cylinder.footprint as fpmod
+    from lrms.covariance import NoiseModel
+    from lrms.cylinder import diameter_u
+    from lrms.errors import NominalDiameterError
+
+    z = np.load(SUBSAMPLE_BASIN)
+    pts = np.asarray(z["points"], dtype=np.float64)
+
+    def fit() -> CylinderFit:
+        return fit_cylinder(
+            pts,
+            noise=NoiseModel(),
+            rng=np.random.default_rng(int(z["fit_seed"])),
+            optics=BeamOptics(),
+            diameter_range=nominal_diameter_range(SEED003_DIAMETER),
+        )
+
+    f = fit()
+    assert f.extra["edge_mode_first"] == 0.0  # the energy-weighted family
+    assert abs(f.diameter - SEED003_DIAMETER) < 2 * diameter_u(f), (f.diameter, diameter_u(f))
+    monkeypatch.setattr(fpmod, "WEIGHTED_FROM_THIN", False)
+    with pytest.raises(NominalDiameterError, match=r"112\.\d mm"):
+        fit()
