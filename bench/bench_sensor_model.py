@@ -103,6 +103,9 @@ JSONL: Path | None = None
 #: The sweeps already in JSONL (skipped: drawn, not fitted again) and the tree's commit.
 DONE: set[tuple[object, ...]] = set()
 REV = "unknown"
+#: Sub-ray patterns of the roi cloud's sweeps (``--patterns P``): sweep s is drawn from the cast of
+#: the pattern turned by ``pi (s mod P) / P`` (``Footprint.rotation_rad``; 1: the cached cast alone).
+PATTERNS = 1
 
 
 @dataclass
@@ -139,10 +142,14 @@ def ideal_draw(g: Geometry) -> Draw:
     return lambda rng: sensor.measure(g.true_range, g.echo, rng)
 
 
-def lms_draw(g: Geometry, sensor: LMS1xxSensor, keep: NDArray[np.intp] | None = None) -> Draw:
+def lms_draw(
+    g: Geometry, sensor: LMS1xxSensor, keep: NDArray[np.intp] | None = None, turned: list[SubRayHits] | None = None
+) -> Draw:
     """Echoes of every beam; with ``keep`` (sorted beam indices, :func:`roi_beams`) echo formation
     runs on those beams alone, their ranges and validity the same as in the whole sweep's (see
-    :class:`SubsetNormals`), the other beams invalid."""
+    :class:`SubsetNormals`), the other beams invalid. ``turned`` (with ``keep``): the ``keep``
+    beams' casts of further sub-ray patterns (:func:`turned_casts`); the draws then take the cached
+    cast and these in turn, one pattern per sweep."""
     n = g.origins.shape[0]
     if keep is None:
 
@@ -151,9 +158,13 @@ def lms_draw(g: Geometry, sensor: LMS1xxSensor, keep: NDArray[np.intp] | None = 
             return e.range, e.valid
 
         return draw
-    sub = SubRayHits(g.sub.range[keep], g.sub.index[keep], g.sub.cos_incidence[keep], g.sub.remission[keep])
+    subs = [SubRayHits(g.sub.range[keep], g.sub.index[keep], g.sub.cos_incidence[keep], g.sub.remission[keep])]
+    subs += turned or []
+    count = [0]
 
     def draw_subset(rng: np.random.Generator) -> tuple[FloatArray, NDArray[np.bool_]]:
+        sub = subs[count[0] % len(subs)]
+        count[0] += 1
         e = sensor.form_echoes(sub, cast(np.random.Generator, SubsetNormals(rng, keep, n)))
         ranges, valid = np.zeros(n), np.zeros(n, dtype=bool)
         ranges[keep], valid[keep] = e.range, e.valid
@@ -178,6 +189,16 @@ class SubsetNormals:
 
     def __getattr__(self, name: str) -> object:
         raise RuntimeError(f"subset echo formation used the generator's {name}: not mirrored for the whole sweep")
+
+
+def turned_casts(scene: Scene, g: Geometry, keep: NDArray[np.intp], patterns: int) -> list[SubRayHits]:
+    """The ``keep`` beams' sub-rays cast against ``scene`` (the one ``g`` was cast from) with the
+    pattern turned by ``pi p / patterns``, p = 1 .. patterns - 1 (the cached cast is p = 0)."""
+    out = []
+    for p in range(1, patterns):
+        fp = dataclasses.replace(FOOTPRINT, rotation_rad=float(np.pi * p / patterns))
+        out.append(LMS1xxSensor(footprint=fp).cast_footprints(scene, g.origins[keep], g.dirs[keep]))
+    return out
 
 
 def roi_beams(g: Geometry) -> NDArray[np.intp]:
@@ -238,6 +259,7 @@ def run_case(
             "case": label,
             "sub_rays": FOOTPRINT.sub_rays,
             "hold_spot": not OPTICS.fit_spot,
+            "patterns": PATTERNS,
             "seed": seed,
             "sweep": sweep,
             "rev": REV,
@@ -338,7 +360,9 @@ def run_case(
     return rows
 
 
-def bench_scene(g: Geometry, sweeps: int, clouds: list[str], family: bool, seed: int, fits: list[str]) -> None:
+def bench_scene(
+    g: Geometry, sweeps: int, clouds: list[str], family: bool, seed: int, fits: list[str], scene: Scene | None = None
+) -> None:
     base = LMS1xxSensor(footprint=FOOTPRINT)
     cases: list[tuple[str, LMS1xxSensor | None]] = [("ideal thin beam (seed 003 noise)", None)] if IDEAL_ROW else []
     edges = EDGE_FAMILY if family else [(0.3, "weighted")]
@@ -352,8 +376,13 @@ def bench_scene(g: Geometry, sweeps: int, clouds: list[str], family: bool, seed:
     for cloud in clouds:
         # the roi cloud's echoes formed on the beams that can reach the ROI alone: the same clouds
         keep = roi_beams(g) if cloud == "roi" and ROI_BEAMS else None
+        turned: list[SubRayHits] = []
+        if PATTERNS > 1 and keep is not None and scene is not None:
+            t0 = time.perf_counter()
+            turned = turned_casts(scene, g, keep, PATTERNS)
+            print(f"  ({PATTERNS - 1} turned patterns of {keep.size} beams cast: {time.perf_counter() - t0:.1f} s)")
         for label, case_sensor in cases:
-            draw = ideal_draw(g) if case_sensor is None else lms_draw(g, case_sensor, keep)
+            draw = ideal_draw(g) if case_sensor is None else lms_draw(g, case_sensor, keep, turned)
             t0 = time.perf_counter()
             rows = run_case(g, draw, sweeps, cloud, seed, fits, label)
             dt = time.perf_counter() - t0
@@ -417,8 +446,19 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--sweep-range", default=None, help="A:B: fit sweeps A..B-1 of the stream (the first A drawn, not fitted)"
     )
+    parser.add_argument(
+        "--patterns",
+        type=int,
+        default=1,
+        help="sub-ray patterns of the roi cloud (turned by pi/P), one per sweep in turn (default 1: the cached cast)",
+    )
     args = parser.parse_args(argv)
-    global FOOTPRINT, OFFSET_ROW, IDEAL_ROW, PROGRESS, ROI_BEAMS, SWEEP_LIST, DUMP, OPTICS, JSONL, DONE, REV
+    global FOOTPRINT, OFFSET_ROW, IDEAL_ROW, PROGRESS, ROI_BEAMS, SWEEP_LIST, DUMP, OPTICS, JSONL, DONE, REV, PATTERNS
+    if args.patterns < 1:
+        parser.error("--patterns must be >= 1")
+    if args.patterns > 1 and (args.all_beams or args.clouds != "roi"):
+        parser.error("--patterns turns the roi cloud's beams only: give --clouds roi, without --all-beams")
+    PATTERNS = args.patterns
     SWEEP_LIST = None if args.sweep_list is None else {int(i) for i in args.sweep_list.split(",") if i}
     if args.sweep_range is not None:
         try:
@@ -468,7 +508,7 @@ def main(argv: list[str] | None = None) -> None:
         t0 = time.perf_counter()
         g = cached_geometry(args.cache, label, diameter, distance, sensor)
         print(f"\n(ray cast of {label}: {time.perf_counter() - t0:.1f} s)")
-        bench_scene(g, args.sweeps, clouds, family, args.seed, fits)
+        bench_scene(g, args.sweeps, clouds, family, args.seed, fits, part_in_room(diameter, distance))
     summary_table()
 
 

@@ -33,8 +33,10 @@ from typing import Any
 import numpy as np
 from scipy.stats import beta as beta_dist
 
-#: The fields that name a case: records agreeing on all of them are pooled.
-CASE_FIELDS = ("scene", "cloud", "fit", "case", "sub_rays", "hold_spot")
+#: The fields that name a case: records agreeing on all of them are pooled (a record without
+#: ``patterns``, from before that field, had one sub-ray pattern).
+CASE_FIELDS = ("scene", "cloud", "fit", "case", "sub_rays", "hold_spot", "patterns")
+_CASE_DEFAULTS: dict[str, Any] = {"patterns": 1}
 
 
 def coverage_interval(k: int, n: int, level: float = 0.95) -> tuple[float, float]:
@@ -50,7 +52,7 @@ def coverage_interval(k: int, n: int, level: float = 0.95) -> tuple[float, float
 
 
 def case_key(rec: dict[str, Any]) -> tuple[Any, ...]:
-    return tuple(rec[f] for f in CASE_FIELDS)
+    return tuple(rec[f] if f in rec else _CASE_DEFAULTS[f] for f in CASE_FIELDS)
 
 
 def sweep_key(rec: dict[str, Any]) -> tuple[Any, ...]:
@@ -161,8 +163,9 @@ def table(summaries: list[Summary]) -> str:
         f" {'std':>6s} {'mean U':>6s} {'cpu s':>6s}  picked / seeds / revs",
     ]
     for s in sorted(summaries, key=lambda s: tuple(str(x) for x in s.key)):
-        scene, cloud, fit, case, sub_rays, hold = s.key
-        name = f"{case} [{fit}, {cloud}, {sub_rays} sub{', spot held' if hold else ''}] {scene.split(' (')[0]}"
+        scene, cloud, fit, case, sub_rays, hold, patterns = s.key
+        turned = f" x {patterns} patterns" if patterns != 1 else ""
+        name = f"{case} [{fit}, {cloud}, {sub_rays} sub{turned}{', spot held' if hold else ''}] {scene.split(' (')[0]}"
         cpu = f"{np.mean(s.cpu):6.1f}" if s.cpu else f"{'-':>6s}"
         fail = s.failed + s.gross
         if s.n == 0:

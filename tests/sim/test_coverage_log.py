@@ -54,6 +54,15 @@ def test_pooling_counts_each_sweep_once_per_case_and_seed() -> None:
     assert by_case["LMS1xx thr 30 % wtd"].n == 1
 
 
+def test_runs_of_several_sub_ray_patterns_pool_apart_from_one_pattern_runs() -> None:
+    """``patterns`` names the case (bench_sensor_model --patterns); a record without the field, from
+    before it, had one pattern and pools with ``patterns: 1``."""
+    records = [rec(0), {**rec(1), "patterns": 1}, {**rec(0), "patterns": 4}, {**rec(1), "patterns": 4}]
+    by_patterns = {s.key[-1]: s for s in summarize(records)}
+    assert set(by_patterns) == {1, 4}
+    assert by_patterns[1].n == 2 and by_patterns[4].n == 2
+
+
 @pytest.mark.parametrize(("k", "n"), [(0, 20), (37, 40), (380, 400), (400, 400)])
 def test_coverage_interval_is_the_exact_binomial_one(k: int, n: int) -> None:
     ci = binomtest(k, n).proportion_ci(0.95, method="exact")

@@ -77,18 +77,34 @@ def test_half_covered_spot_on_a_silhouette_edge(r: float) -> None:
 
 def test_covered_energy_follows_the_gaussian_profile_and_the_divergence() -> None:
     """An edge one profile sigma (spot diameter / 4) off the centre: the covered share of a Gaussian
-    truncated at 1.5 spot radii (3 sigma), from a fine grid, within the pattern's stated 0.03 at 128."""
-    fp = Footprint(sub_rays=128)
+    truncated at 1.5 spot radii (3 sigma), from a fine grid, within the pattern's stated 0.03 at 128;
+    so too with the pattern turned (``rotation_rad``), whose sampling error is another."""
     x = np.linspace(-3, 3, 1201)
     gx, gy = np.meshgrid(x, x)
     g = np.exp(-0.5 * (gx**2 + gy**2)) * (gx**2 + gy**2 <= 9)
     expected = float((g * (gx > 1)).sum() / g.sum())
-    for r in (1.0, 4.0):
-        scene = Scene("edge")
-        half_plane(scene, r, spot_radius(fp, r) / 2, 0.5, "wall")
-        e = LMS1xxSensor(footprint=fp, edge_threshold=0.0).echoes(scene, ORIGIN, AHEAD, None)
-        assert e.coverage is not None
-        assert e.coverage[0] == pytest.approx(expected, abs=0.03)
+    shares = {}
+    for turn in (0.0, 0.9):
+        fp = Footprint(sub_rays=128, rotation_rad=turn)
+        for r in (1.0, 4.0):
+            scene = Scene("edge")
+            half_plane(scene, r, spot_radius(fp, r) / 2, 0.5, "wall")
+            e = LMS1xxSensor(footprint=fp, edge_threshold=0.0).echoes(scene, ORIGIN, AHEAD, None)
+            assert e.coverage is not None
+            assert e.coverage[0] == pytest.approx(expected, abs=0.03)
+            shares[turn, r] = float(e.coverage[0])
+    assert shares[0.0, 1.0] != shares[0.9, 1.0]  # another pattern, another sampling of the edge
+
+
+def test_a_turned_pattern_keeps_its_rings_weights_and_symmetry() -> None:
+    a, b, w = Footprint().pattern()
+    ta, tb, tw = Footprint(rotation_rad=0.7).pattern()
+    np.testing.assert_allclose(np.hypot(ta, tb), np.hypot(a, b), atol=1e-15)
+    np.testing.assert_array_equal(tw, w)
+    turned = np.angle(np.exp(1j * (np.arctan2(tb, ta) - np.arctan2(b, a) - 0.7)))
+    np.testing.assert_allclose(turned, 0.0, atol=1e-12)
+    k = a.size
+    np.testing.assert_allclose(ta[: k // 2], -ta[k // 2 :])  # still point symmetric: a half-covered spot is 1/2
 
 
 def test_depth_step_inside_the_spot_mixed_pixel_and_first_hit() -> None:
@@ -186,6 +202,8 @@ def test_range_systematics_offset_scale_temperature_warmup() -> None:
         lambda: Footprint(exit_diameter_m=float("nan")),
         lambda: Footprint(sub_rays=31),
         lambda: Footprint(profile_sigma=0.0),
+        lambda: Footprint(rotation_rad=float("nan")),
+        lambda: Footprint(rotation_rad=7.0),
         lambda: LMS1xxSensor(edge_threshold=1.5),
         lambda: LMS1xxSensor(edge_threshold=-0.1),
         lambda: LMS1xxSensor(sigma_typical=0.03, sigma_max=0.02),
