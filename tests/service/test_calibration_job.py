@@ -83,6 +83,7 @@ def test_a_calibration_sweep_on_the_miscalibrated_rig_then_a_measurement_with_it
             done = _wait(client, job["id"])
             assert done["state"] == "done", done
             res = done["result"]
+            drift = res["clock"]["drift_ppm"] * 1e-6  # the simulated scanner's clock has none: all of it is error
             cid = res["calibration_id"]
             assert res["calibration_active"] and res["calibration"] is None  # swept with the nominal rig
             assert "calibration_result" not in res  # stored, not repeated in the job
@@ -129,6 +130,14 @@ def test_a_calibration_sweep_on_the_miscalibrated_rig_then_a_measurement_with_it
         assert abs(err) <= 4 * std[name], (name, cal["model"][name], std[name])
     for name in ("k1", "p", "q", "beta_scale"):  # true 0 (the rig has no error there)
         if name in std:
+            err = cal["model"][name] - RigModel().to_dict()[name]
+            print(f"calibration sweep: {name} off by {err / std[name]:+.2f} std")
+            if name == "beta_scale":
+                # a rate error of the scanner clock's estimate (the time sync) scales the motor angles
+                # like beta_scale, and the adjustment's std does not hold it (docs/calibration.md)
+                print(f"calibration sweep: clock drift estimate {drift * 1e6:+.1f} ppm (true 0)")
+                assert abs(err) <= 4 * std[name] + abs(drift), (name, cal["model"][name], std[name], drift)
+                continue
             assert abs(cal["model"][name] - RigModel().to_dict()[name]) <= 4 * std[name], (name, cal["model"][name])
     assert part["state"] == "done", part
     result = part["result"]
