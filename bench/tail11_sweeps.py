@@ -115,7 +115,16 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--cache", required=True)
     ap.add_argument("--profile", action="store_true")
     ap.add_argument("--trace", action="store_true", help="print every edge family's solution (radius vs its box)")
+    ap.add_argument(
+        "--weighted-profile-interval",
+        action="store_true",
+        help="the energy-weighted family's u from the profile-likelihood interval (WEIGHTED_PROFILE_INTERVAL)",
+    )
     args = ap.parse_args(argv)
+    if args.weighted_profile_interval:
+        from lrms.cylinder import footprint
+
+        footprint.WEIGHTED_PROFILE_INTERVAL = True
     thr, mode = float(args.edge.split(":")[0]), args.edge.split(":")[1]
     only = sorted(int(x) for x in args.only.split(","))
     sys.modules["__main__"].Geometry = bsm.Geometry  # type: ignore[attr-defined]

@@ -97,6 +97,10 @@ FIRST_STARTS = (0.1, 0.3, 0.5)
 #: The energy-weighted family's refinement on all work beams starts from the thin beam's solution,
 #: not from its subsample's (False: from the subsample's, before session 12).
 WEIGHTED_FROM_THIN = True
+#: The energy-weighted family's radius u from the profile-likelihood interval searched outward (as
+#: the first hit's), not from the profile's curvature at +-1 mm (False: the curvature, before
+#: session 13).
+WEIGHTED_PROFILE_INTERVAL = False
 
 
 def footprint_fit(
@@ -219,7 +223,7 @@ def footprint_fit(
     # for (rounds 3-5); energy-weighted: the profile's curvature at +-1 mm
     var_jtj = float(cov_full[4, 4])
     prof: _Profile | None = None
-    if best.mode == "first":
+    if best.mode == "first" or WEIGHTED_PROFILE_INTERVAL:
         prof = _profile_interval(best, frame, optics, chi2_dof)
         var_prof = prof.u**2
     else:
