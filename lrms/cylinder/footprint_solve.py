@@ -134,7 +134,10 @@ def _first_jacobian(
     so are the beams with a node near the front's tip (``F``'s square-root onset) whose linear step
     lands off the target (``F`` evaluated there misses it by more than 1 % of the step). ``F'`` is
     the full slope, the spot's growth with ``T`` included (:func:`_first_share`; without it rows were
-    up to 7 % off, and one 47x where the linear step crossed a node's tip).
+    up to 7 % off, and one 47x where the linear step crossed a node's tip). The spot scale's column
+    (when the fit estimates it) takes the same step, its ``dF`` evaluated at ``T0`` under the scaled
+    spot (until session 13 a plain forward difference through a Newton solve: a third of the
+    Jacobian's cost).
     """
     a, w, r = frame.unpack(theta[:5])
     tau = float(expit(theta[5]))
@@ -147,51 +150,66 @@ def _first_jacobian(
     flat = np.flatnonzero(fp0 < 1.0)  # F flat at T (a spot that barely meets the part): re-solved
     fp0 = np.maximum(fp0, 1.0)
     r0 = _first_rows(g, big_t, slope, tau, rays, optics)
-    jac = np.empty((r0.size, 6))
+    ncol = theta.size  # 6, or 7 with the spot's scale
+    jac = np.empty((r0.size, ncol))
     cols = []
     redo: list[IntArray] = []  # per column: the beams whose range is re-solved by Newton
-    for j in range(6):
+    for j in range(ncol):
         th = theta.copy()
         th[j] += _JAC_STEP[j]
         aj, wj, rj = frame.unpack(th[:5])
         tj = float(expit(th[5]))
-        gj = _geometry(aj, wj, float(rj), rays, optics, spot) if j < 5 else g
-        # F's change at T0 to first order in the geometry's (the steps are 1e-6)
-        df = (
-            grad[:, 0] * (gj.x0 - g.x0)
-            + grad[:, 1] * (gj.t_ca - g.t_ca)
-            + grad[:, 2] * (gj.cos_axis - g.cos_axis)
-            + grad[:, 3] * (gj.radius - g.radius)
-        )
-        if near.size and j < 5:
-            fn, _ = _first_share(big_t[near], gj.x0[near], gj.t_ca[near], gj.cos_axis[near], gj.radius, g.s0, g.sd)
-            df[near] = fn - f0[near]
+        if j < 5:
+            gj = _geometry(aj, wj, float(rj), rays, optics, spot)
+            # F's change at T0 to first order in the geometry's (the steps are 1e-6)
+            df = (
+                grad[:, 0] * (gj.x0 - g.x0)
+                + grad[:, 1] * (gj.t_ca - g.t_ca)
+                + grad[:, 2] * (gj.cos_axis - g.cos_axis)
+                + grad[:, 3] * (gj.radius - g.radius)
+            )
+            if near.size:
+                fn, _ = _first_share(big_t[near], gj.x0[near], gj.t_ca[near], gj.cos_axis[near], gj.radius, g.s0, g.sd)
+                df[near] = fn - f0[near]
+        elif j == 5:  # the threshold: F unchanged, only the target moves
+            gj, df = g, np.zeros_like(f0)
+        else:
+            # the spot's scale: F at T0 under the scaled spot, evaluated (one F for all beams, no
+            # Newton solve); the implicit step as for the other columns
+            gj = _geometry(a, w, float(r), rays, optics, _fit_scale(th, "first"))
+            df = _first_share(big_t, gj.x0, gj.t_ca, gj.cos_axis, gj.radius, gj.s0, gj.sd)[0] - f0
         target_j = np.minimum(tj, 0.999 * gj.c)
         tt = big_t - (df - (target_j - target0)) / fp0
         bad = flat
-        if near.size and j < 5:
+        if near.size and j != 5:
             # near the front's tip F has a node's square-root onset: the linear step from T0 can
             # miss (a radius row 47x off, spot 1.1 x nominal). Checked where it lands: a beam
             # whose F there misses the target by more than 1 % of its step is re-solved
-            fl, _ = _first_share(tt[near], gj.x0[near], gj.t_ca[near], gj.cos_axis[near], gj.radius, g.s0, g.sd)
+            fl, _ = _first_share(tt[near], gj.x0[near], gj.t_ca[near], gj.cos_axis[near], gj.radius, gj.s0, gj.sd)
             miss = np.abs(fl - target_j[near]) / fp0[near] > 0.01 * np.abs(tt[near] - big_t[near]) + 1e-13
             bad = np.union1d(flat, near[miss])
         redo.append(bad)
         cols.append((gj, tj, tt))
-    if sum(b.size for b in redo):  # every column's re-solved beams in one Newton solve
+    # every column's re-solved beams in one Newton solve per spot size (the geometry and threshold
+    # columns share the spot; the spot's own column has its own)
+    for group in ([j for j in range(ncol) if j < 6], [j for j in range(ncol) if j == 6]):
+        if not group or not sum(redo[j].size for j in group):
+            continue
+        gs = cols[group[0]][0]
         tt_redo, _ = _first_newton(
-            np.concatenate([gj.x0[b] for (gj, _, _), b in zip(cols, redo, strict=True)]),
-            np.concatenate([gj.t_ca[b] for (gj, _, _), b in zip(cols, redo, strict=True)]),
-            np.concatenate([gj.cos_axis[b] for (gj, _, _), b in zip(cols, redo, strict=True)]),
-            np.concatenate([np.full(b.size, gj.radius) for (gj, _, _), b in zip(cols, redo, strict=True)]),
-            g.s0,
-            g.sd,
-            np.concatenate([np.minimum(tj, 0.999 * gj.c[b]) for (gj, tj, _), b in zip(cols, redo, strict=True)]),
-            np.concatenate([gj.c[b] for (gj, _, _), b in zip(cols, redo, strict=True)]),
+            np.concatenate([cols[j][0].x0[redo[j]] for j in group]),
+            np.concatenate([cols[j][0].t_ca[redo[j]] for j in group]),
+            np.concatenate([cols[j][0].cos_axis[redo[j]] for j in group]),
+            np.concatenate([np.full(redo[j].size, cols[j][0].radius) for j in group]),
+            gs.s0,
+            gs.sd,
+            np.concatenate([np.minimum(cols[j][1], 0.999 * cols[j][0].c[redo[j]]) for j in group]),
+            np.concatenate([cols[j][0].c[redo[j]] for j in group]),
         )
         at = 0
-        for (_, _, tt), b in zip(cols, redo, strict=True):
-            tt[b] = tt_redo[at : at + b.size]
+        for j in group:
+            b = redo[j]
+            cols[j][2][b] = tt_redo[at : at + b.size]
             at += b.size
     for j, (gj, tj, tt) in enumerate(cols):
         sj = slope
@@ -199,15 +217,12 @@ def _first_jacobian(
             _, fpj = _first_share(tt, gj.x0, gj.t_ca, gj.cos_axis, gj.radius, gj.s0, gj.sd)
             sj = 1.0 / np.maximum(fpj, 1.0)
         jac[:, j] = (_first_rows(gj, tt, sj, tj, rays, optics) - r0) / _JAC_STEP[j]
-    if theta.size == 6:
+    if ncol == 6:
         return jac
-    # the spot's scale: a plain forward difference (one Newton solve), and the prior row
-    th = theta.copy()
-    th[6] += _JAC_STEP[6]
+    # the spot scale's prior row (log(scale) / spot_scale_u): 1 / spot_scale_u in its own column
     full = np.zeros((r0.size + 1, 7))
-    full[: r0.size, :6] = jac
-    base = np.append(r0, theta[6] / optics.spot_scale_u)
-    full[:, 6] = (_residuals(th, frame, rays, optics, "first") - base) / _JAC_STEP[6]
+    full[: r0.size] = jac
+    full[r0.size, 6] = 1.0 / optics.spot_scale_u
     return full
 
 
