@@ -351,6 +351,8 @@ def run_case(
                 tau=x.get("edge_threshold"),
                 spot_scale=x.get("edge_spot_scale"),
                 flagged="nominal_excess_m" in x,
+                profile_restarts=x.get("footprint_profile_restarts"),
+                profile_moved_m=x.get("footprint_profile_moved_m"),
             )
             log("ok")
         done = len(rows[fits[0]].errors) + rows[fits[0]].failed + rows[fits[0]].gross

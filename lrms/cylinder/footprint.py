@@ -101,6 +101,11 @@ WEIGHTED_FROM_THIN = True
 #: the first hit's), not from the profile's curvature at +-1 mm (False: the curvature, before
 #: session 13).
 WEIGHTED_PROFILE_INTERVAL = False
+#: A radius profile that meets a cost (chi-square) lower than the solution's by more than
+#: PROFILE_RESTART_DROP restarts the family's solve from that point, at most PROFILE_RESTARTS
+#: times (0: the profile only reports it, before session 13).
+PROFILE_RESTARTS = 1
+PROFILE_RESTART_DROP = 1.0
 
 
 def footprint_fit(
@@ -207,27 +212,43 @@ def footprint_fit(
     if REGATE_BAND > 0.0:
         best = _regated(best, frame, rays, fit.cylinder, use, optics, gate, work_size)
     extra["footprint_beams"] = float(best.rays.ranges.size)
-    jac = best.jac
-    n_res = best.rays.ranges.size  # range rows (a first-hit fit adds coverage rows)
-    jtj_inv = np.linalg.pinv(jac.T @ jac)
-    dof = max(n_res - best.n_par, 1)
-    range_rows = _residuals(best.theta, frame, best.rays, optics, best.mode)[:n_res]
-    chi2 = float(np.sum(range_rows * range_rows))
-    chi2_dof = chi2 / dof
-    cov_full = jtj_inv * max(1.0, chi2_dof)
     # the profile of the cost in the radius: the first hit's radius trades off against tau along a
     # flat, rough ridge that the Gauss-Newton curvature J^T J does not see (its u was 4-5x below
     # the spread of noise-only replicas); the variance is taken as the larger of the two, the whole
     # covariance scaled by their ratio (the axis point follows the radius along that ridge; see
     # docs/cylinder.md section 7). First hit: the profile-likelihood interval, its crossing searched
-    # for (rounds 3-5); energy-weighted: the profile's curvature at +-1 mm
+    # for (rounds 3-5); energy-weighted: the profile's curvature at +-1 mm. A profile that meets a
+    # cost lower than the solution's by PROFILE_RESTART_DROP (another local minimum of the ridge)
+    # restarts the family's solve from there, and the profile is taken again about the new solution
+    restarts, moved = 0, 0.0
+    while True:
+        n_res = best.rays.ranges.size  # range rows (a first-hit fit adds coverage rows)
+        range_rows = _residuals(best.theta, frame, best.rays, optics, best.mode)[:n_res]
+        chi2 = float(np.sum(range_rows * range_rows))
+        chi2_dof = chi2 / max(n_res - best.n_par, 1)
+        prof: _Profile | None = None
+        if best.mode == "first" or WEIGHTED_PROFILE_INTERVAL:
+            prof = _profile_interval(best, frame, optics, chi2_dof)
+            if (
+                restarts < PROFILE_RESTARTS
+                and prof.lowest_theta is not None
+                and prof.lowest_cost < best.cost - PROFILE_RESTART_DROP
+            ):
+                restarts += 1
+                again = _solve(frame, best.rays, optics, best.mode, prof.lowest_theta)
+                if not again.pinned and again.cost < best.cost - PROFILE_RESTART_DROP:
+                    moved += 2.0 * float(again.theta[4] - best.theta[4])
+                    best = again
+                    continue
+            var_prof = prof.u**2
+        else:
+            var_prof = _profile_variance(best, frame, optics) * max(1.0, chi2_dof)
+        break
+    jac = best.jac
+    jtj_inv = np.linalg.pinv(jac.T @ jac)
+    cov_full = jtj_inv * max(1.0, chi2_dof)
     var_jtj = float(cov_full[4, 4])
-    prof: _Profile | None = None
-    if best.mode == "first" or WEIGHTED_PROFILE_INTERVAL:
-        prof = _profile_interval(best, frame, optics, chi2_dof)
-        var_prof = prof.u**2
-    else:
-        var_prof = _profile_variance(best, frame, optics) * max(1.0, chi2_dof)
+    extra.update({"footprint_profile_restarts": float(restarts), "footprint_profile_moved_m": moved})
     prof_scale = max(1.0, var_prof / max(var_jtj, 1e-30))
     k_spot = _spot_index(best.mode)
     free = best.theta.size > k_spot

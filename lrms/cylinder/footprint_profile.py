@@ -84,6 +84,8 @@ class _Profile:
     hi: float  # its upper end (>= 0)
     lowest: float  # the offset of the lowest cost the profile met (0: the solution itself)
     evaluations: int  # held-radius solves
+    lowest_cost: float = float("nan")  # the lowest cost met (the solution's when ``lowest`` is 0)
+    lowest_theta: FloatArray | None = None  # all parameters there (None when ``lowest`` is 0)
 
     @property
     def u(self) -> float:
@@ -105,12 +107,14 @@ def _profile_interval(best: _Solved, frame: _Frame, optics: BeamOptics, variance
     delta = PROFILE_K**2 * max(1.0, variance_factor)
     start = np.delete(best.theta, 4)
     pts: dict[float, float] = {0.0: best.cost}
+    params: dict[float, FloatArray] = {0.0: best.theta}
     floor = best.cost
     for side in (-1.0, 1.0):
         p = start
         for h in PROFILE_SEARCH:
             cost, p = _held(best, frame, optics, side * h, p, 6 * start.size)
             pts[side * h] = cost
+            params[side * h] = np.insert(p, 4, best.theta[4] + side * h)
             floor = min(floor, cost)
             if cost - floor > delta:
                 break
@@ -127,4 +131,11 @@ def _profile_interval(best: _Solved, frame: _Frame, optics: BeamOptics, variance
         else:
             ends.append(offs[j])
     lowest = min(pts, key=lambda o: pts[o])
-    return _Profile(lo=min(ends[0], 0.0), hi=max(ends[1], 0.0), lowest=lowest, evaluations=len(pts) - 1)
+    return _Profile(
+        lo=min(ends[0], 0.0),
+        hi=max(ends[1], 0.0),
+        lowest=lowest,
+        evaluations=len(pts) - 1,
+        lowest_cost=pts[lowest],
+        lowest_theta=None if lowest == 0.0 else params[lowest],
+    )
