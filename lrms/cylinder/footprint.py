@@ -126,8 +126,11 @@ def footprint_fit(
     a real receiver exceeds the noise model at weak and inclined echoes) and then to the radius's
     profile where that is wider (first hit: its profile-likelihood interval at k = 2,
     :func:`_profile_interval`, whose ends ``footprint_profile_lo_m`` / ``footprint_profile_hi_m``
-    and lowest point ``footprint_profile_lowest_m``, diameter offsets, are in ``extra``; energy-weighted:
-    the curvature at +-1 mm, :func:`_profile_variance`), and whose ``extra`` holds
+    and lowest point ``footprint_profile_lowest_m``, diameter offsets, are in ``extra``; a profile
+    that meets a cost lower than the solution's by more than :data:`PROFILE_RESTART_DROP` restarts
+    the family's solve there, ``footprint_profile_restarts`` times, the diameter moved by
+    ``footprint_profile_moved_m``; energy-weighted: the curvature at +-1 mm,
+    :func:`_profile_variance`), and whose ``extra`` holds
     ``edge_model_u_m`` (the budget row of the spot size when it is held at its nominal size; 0 when
     the fit estimates it, ``BeamOptics.fit_spot``: then ``edge_spot_scale`` and its standard
     uncertainty ``edge_spot_scale_u``, in the covariance), ``edge_family_u_m`` (the
