@@ -307,6 +307,9 @@ def _footprint_json(extra: dict[str, float]) -> dict[str, Any]:
             if "footprint_profile_lo_m" in extra
             else None
         ),
+        # a profile that met a lower cost restarted the family's solve there: how often, and the move
+        "profile_restarts": int(extra.get("footprint_profile_restarts", 0)),
+        "profile_moved_m": float(extra.get("footprint_profile_moved_m", 0.0)),
     }
 
 

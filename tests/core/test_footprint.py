@@ -752,6 +752,10 @@ def test_a_radius_profile_that_meets_a_lower_cost_restarts_the_first_hit_solve_f
     assert -6e-3 < f.extra["footprint_profile_moved_m"] < -1e-3, f.extra["footprint_profile_moved_m"]
     err = f.diameter - SEED003_DIAMETER
     assert abs(err) < 2 * diameter_u(f), (err, diameter_u(f))
+    from service.fitting import _footprint_json  # the result's JSON says so
+
+    shown = _footprint_json(f.extra)
+    assert shown["profile_restarts"] == 1 and shown["profile_moved_m"] == f.extra["footprint_profile_moved_m"]
     monkeypatch.setattr(fpmod, "PROFILE_RESTARTS", 0)
     before = fit()
     # the defect: the profile met a lower cost off the solution, and the solution was reported anyway
