@@ -287,12 +287,13 @@ def test_a_recipe_measurement_is_decided_again_with_its_recipe_version(archive: 
     original = archive["good"][mid].result
     engine = rp.result_engine(cfg)
     try:
-        # a recipe whose tolerance excludes the part (nominal 10 mm above it: does not conform)
+        # a recipe whose tolerance excludes the part (nominal 30 mm above it: does not conform; this
+        # short sweep's U is 4-6 mm, and once, with the nominal 10 mm above, it reached the zone)
         d = float(original["diameter_m"])
         body = {
             "name": "SHAFT-T",
             "target": "cylinder",
-            "tolerances": {"diameter": {"nominal_m": d + 0.01, "lower_m": -0.001, "upper_m": 0.001}},
+            "tolerances": {"diameter": {"nominal_m": d + 0.03, "lower_m": -0.001, "upper_m": 0.001}},
             "material": "carbon_steel",
             "sweep": {"speed_deg_s": 20.0},
         }
@@ -315,7 +316,7 @@ def test_a_recipe_measurement_is_decided_again_with_its_recipe_version(archive: 
         assert summary.done == 1 and not summary.failed, summary.failed
         (v,) = VersionStore(engine).versions()
         assert v.result["part"] == part and v.result["thermal"] is None
-        assert v.result["decision"]["outcome"] == "does_not_conform"
+        assert v.result["decision"]["outcome"] == "does_not_conform", v.result["decision"]
         assert summary.decision_changes == [
             {"measurement_id": mid, "version": 1, "original": "conforms", "new": "does_not_conform"}
         ]
