@@ -675,6 +675,21 @@ def test_the_footprint_fit_takes_its_beams_about_its_own_model_not_the_thin_beam
     assert abs(err) < 2 * u  # +1.1 mm
 
 
+def _fit_saved_sweep(path: Path) -> CylinderFit:
+    """A saved coverage sweep (its "roi" cloud and the bench's fit seed) fitted as the bench fits it:
+    the LMS1xx footprint, seed 003's nominal diameter range."""
+    from lrms.covariance import NoiseModel
+
+    z = np.load(path)
+    return fit_cylinder(
+        np.asarray(z["points"], dtype=np.float64),
+        noise=NoiseModel(),
+        rng=np.random.default_rng(int(z["fit_seed"])),
+        optics=BeamOptics(),
+        diameter_range=nominal_diameter_range(SEED003_DIAMETER),
+    )
+
+
 #: Sweep 8 (0-based) of the bench's seed-11 stream, 10 % energy-weighted echoes: ``PYTHONPATH=.
 #: python -m bench.bench_sensor_model --only seed003 --clouds roi --fit footprint --no-offset
 #: --no-ideal --edges 0.1:weighted --seed 11 --sweeps 9 --sweep-list 8 --dump DIR`` on the
@@ -691,21 +706,11 @@ def test_the_energy_weighted_family_is_refined_from_the_thin_beam_not_from_its_s
     (112.3 mm, u 3.2 mm, refused by the nominal check: 1 of 200 sweeps of the coverage run). Refined
     from the thin beam's solution the family finds the minimum of all beams: +7.0 mm, u 5.5 mm."""
     import lrms.cylinder.footprint as fpmod
-    from lrms.covariance import NoiseModel
     from lrms.cylinder import diameter_u
     from lrms.errors import NominalDiameterError
 
-    z = np.load(SUBSAMPLE_BASIN)
-    pts = np.asarray(z["points"], dtype=np.float64)
-
     def fit() -> CylinderFit:
-        return fit_cylinder(
-            pts,
-            noise=NoiseModel(),
-            rng=np.random.default_rng(int(z["fit_seed"])),
-            optics=BeamOptics(),
-            diameter_range=nominal_diameter_range(SEED003_DIAMETER),
-        )
+        return _fit_saved_sweep(SUBSAMPLE_BASIN)
 
     f = fit()
     assert f.extra["edge_mode_first"] == 0.0  # the energy-weighted family
@@ -732,20 +737,10 @@ def test_a_radius_profile_that_meets_a_lower_cost_restarts_the_first_hit_solve_f
     now restarts the family's solve from the profile's lowest point and takes the profile again
     there: +3.3 mm, u 2.8 mm (measured)."""
     import lrms.cylinder.footprint as fpmod
-    from lrms.covariance import NoiseModel
     from lrms.cylinder import diameter_u
 
-    z = np.load(PROFILE_LOWER)
-    pts = np.asarray(z["points"], dtype=np.float64)
-
     def fit() -> CylinderFit:
-        return fit_cylinder(
-            pts,
-            noise=NoiseModel(),
-            rng=np.random.default_rng(int(z["fit_seed"])),
-            optics=BeamOptics(),
-            diameter_range=nominal_diameter_range(SEED003_DIAMETER),
-        )
+        return _fit_saved_sweep(PROFILE_LOWER)
 
     f = fit()
     assert f.extra["edge_mode_first"] == 1.0 and f.extra["footprint_profile_restarts"] == 1.0
