@@ -150,8 +150,8 @@ def _first_jacobian(
     flat = np.flatnonzero(fp0 < 1.0)  # F flat at T (a spot that barely meets the part): re-solved
     fp0 = np.maximum(fp0, 1.0)
     r0 = _first_rows(g, big_t, slope, tau, rays, optics)
-    ncol = theta.size  # 6, or 7 with the spot's scale
-    jac = np.empty((r0.size, ncol))
+    ncol = theta.size  # 6, or 7 with the spot's scale (and its prior row)
+    jac = np.zeros((r0.size + (ncol > 6), ncol))
     cols = []
     redo: list[IntArray] = []  # per column: the beams whose range is re-solved by Newton
     for j in range(ncol):
@@ -192,8 +192,8 @@ def _first_jacobian(
         cols.append((gj, tj, tt))
     # every column's re-solved beams in one Newton solve per spot size (the geometry and threshold
     # columns share the spot; the spot's own column has its own)
-    for group in ([j for j in range(ncol) if j < 6], [j for j in range(ncol) if j == 6]):
-        if not group or not sum(redo[j].size for j in group):
+    for group in (range(min(ncol, 6)), range(6, ncol)):
+        if not sum(redo[j].size for j in group):
             continue
         gs = cols[group[0]][0]
         tt_redo, _ = _first_newton(
@@ -216,14 +216,10 @@ def _first_jacobian(
         if optics.share_u > 0.0:
             _, fpj = _first_share(tt, gj.x0, gj.t_ca, gj.cos_axis, gj.radius, gj.s0, gj.sd)
             sj = 1.0 / np.maximum(fpj, 1.0)
-        jac[:, j] = (_first_rows(gj, tt, sj, tj, rays, optics) - r0) / _JAC_STEP[j]
-    if ncol == 6:
-        return jac
-    # the spot scale's prior row (log(scale) / spot_scale_u): 1 / spot_scale_u in its own column
-    full = np.zeros((r0.size + 1, 7))
-    full[: r0.size] = jac
-    full[r0.size, 6] = 1.0 / optics.spot_scale_u
-    return full
+        jac[: r0.size, j] = (_first_rows(gj, tt, sj, tj, rays, optics) - r0) / _JAC_STEP[j]
+    if ncol > 6:  # the spot scale's prior row (log(scale) / spot_scale_u)
+        jac[r0.size, 6] = 1.0 / optics.spot_scale_u
+    return jac
 
 
 def _solve(frame: _Frame, rays: Rays, optics: BeamOptics, mode: EdgeMode, start: FloatArray) -> _Solved:
